@@ -1,0 +1,228 @@
+"""One-step sampling-policy selection on the 10-state chain walk (paper section 3.5, Figs. 3-5).
+
+For three evaluation policies (ε = 0.1 versions of 'RRRRRRRRRR', 'RLLLLLRRRR', 'LLLLLRRRRR')
+and ten sampling-policy candidates (ε = k/10), every trial
+
+1. collects Z = 5 reward-free sets of M = 10 episodes per candidate and computes J' (Algorithm 2),
+2. collects a rewarded set of M episodes per candidate, fits θ_k (eq. 22-28) and measures its
+   true generalisation error Ḡ_k exactly from the model (SPEC section 4),
+3. records Ḡ of the candidate chosen by active learning (AL: argmin J'), by passive learning
+   (PL: k = 1, the evaluation policy itself) and by an oracle (OPT: argmin Ḡ).
+
+All trials run as one batch: the environment holds T·Z·K·M chains at once.
+
+    python examples/chain_walk_one_step.py --trials 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from envs.chain_walk import (  # noqa: E402
+    CENTERS,
+    GAMMA,
+    TAU,
+    ChainWalkEnv,
+    deterministic_policy_probs,
+    exact_psi,
+    state_action_occupancy,
+    true_generalisation_error,
+)
+from torch_api.basis import GaussianActionBasis  # noqa: E402
+from torch_api.data import collect_episodes  # noqa: E402
+from torch_api.design import build_design  # noqa: E402
+from torch_api.policies import TabularPolicy  # noqa: E402
+from torch_api.psi import PsiHat  # noqa: E402
+from torch_api.selector import j_values  # noqa: E402
+from torch_api.solve import weighted_ridge  # noqa: E402
+
+BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # eq. 51-53, 10-letter readings
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the one-step experiment."""
+
+    trials: int = 100
+    """independent trials (the paper: 100)"""
+    episodes: int = 10
+    """M, episodes per data set"""
+    steps: int = 10
+    """N, steps per episode"""
+    repeats: int = 5
+    """Z, J-values averaged into J'"""
+    candidates: int = 10
+    """K, candidate k samples with ε = k / K"""
+    eval_epsilon: float = 0.1
+    """ε of the evaluation policies"""
+    lam: float = 1e-3
+    """λ, ridge regularisation"""
+    seed: int = 0
+    """seed of the environment and the policies"""
+    out_dir: str = "results/chain_walk_one_step"
+    """where the JSON and the figures go"""
+
+
+def parse_args(argv=None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for field in dataclasses.fields(Args):
+        parser.add_argument(
+            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
+        )
+    return Args(**vars(parser.parse_args(argv)))
+
+
+def state_index(obs: torch.Tensor) -> torch.Tensor:
+    """Chain-walk observation (the state number 1..10) -> table row 0..9."""
+    return obs[..., 0].round().long() - 1
+
+
+def row_tables(tables: torch.Tensor, lead: tuple[int, ...]) -> torch.Tensor:
+    """Probability table of every environment row: ``[K, S, A]`` -> ``[prod(lead)·K·M, S, A]``.
+
+    ``lead`` is the shape ``(..., K, M)`` of the environment batch, K at position -2.
+    """
+    shape = [1] * len(lead) + list(tables.shape[-2:])
+    shape[-4] = tables.shape[0]
+    return tables.reshape(shape).expand(*lead, *tables.shape[-2:]).reshape(-1, *tables.shape[-2:])
+
+
+def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> dict:
+    """All trials for one evaluation policy; returns J' and Ḡ ``[T, K]``."""
+    t, z, k, m, n = args.trials, args.repeats, args.candidates, args.episodes, args.steps
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
+    psi = PsiHat(basis=basis, gamma=GAMMA, mode="grouped")
+    eval_table = deterministic_policy_probs(base, args.eval_epsilon)
+    evaluation = TabularPolicy(table=eval_table, state_index=state_index)
+    eps = torch.arange(1, k + 1, dtype=torch.float64) / k
+    cand_tables = deterministic_policy_probs(base, eps)  # [K, S, A]
+
+    # Reward-free data: [T, Z, K, M] chains, candidate k on its rows (Algorithm 2, steps 2-5).
+    env = ChainWalkEnv(batch_size=t * z * k * m, seed=seed)
+    sampler = TabularPolicy(
+        table=row_tables(cand_tables, (t, z, k, m)), state_index=state_index, generator=generator
+    )
+    free = collect_episodes(env, sampler, num_episodes=t * z * k * m, num_steps=n, rewarded=False)
+    j_all = j_values(free.reshape(t, z, k, m, n), None, evaluation, psi, args.lam)  # [T, Z, K]
+    j_prime = j_all.mean(1)
+
+    # Rewarded data: one fresh set of M episodes per trial and candidate; θ_k and its Ḡ_k.
+    env = ChainWalkEnv(batch_size=t * k * m, seed=seed + 1)
+    sampler = TabularPolicy(
+        table=row_tables(cand_tables, (t, k, m)), state_index=state_index, generator=generator
+    )
+    bought = collect_episodes(env, sampler, num_episodes=t * k * m, num_steps=n, rewarded=True)
+    design = build_design(bought.reshape(t, k, m, n), evaluation, psi)
+    theta = weighted_ridge(design.x, design.w, design.reward, args.lam)  # [T, K, B]
+
+    model = env.model()
+    states = torch.arange(1, model.n_states + 1, dtype=torch.float64).unsqueeze(-1)
+    phi_all = basis.phi_all(states)  # [S, A, B]
+    psi_true = exact_psi(model.transitions, phi_all, eval_table, GAMMA)
+    occupancy = state_action_occupancy(model.transitions, eval_table, model.initial, n)
+    g_true = true_generalisation_error(theta, psi_true, model.expected_reward, occupancy)
+    return {"j_prime": j_prime, "g_true": g_true}
+
+
+def summarise(j_prime: torch.Tensor, g_true: torch.Tensor) -> dict:
+    """AL / PL / OPT choices and the table's numbers for one evaluation policy."""
+    trials = torch.arange(j_prime.shape[0])
+    al = g_true[trials, j_prime.argmin(-1)]
+    pl = g_true[:, 0]
+    opt = g_true.min(-1).values
+    rho = scipy.stats.spearmanr(j_prime.mean(0).numpy(), g_true.mean(0).numpy()).statistic
+    return {
+        "g_al": al.tolist(),
+        "g_pl": pl.tolist(),
+        "g_opt": opt.tolist(),
+        "al_choice": (j_prime.argmin(-1) + 1).tolist(),
+        "mean_g_al": al.mean().item(),
+        "mean_g_pl": pl.mean().item(),
+        "mean_g_opt": opt.mean().item(),
+        "share_al_at_least_as_good_as_pl": (al <= pl).double().mean().item(),
+        "spearman_mean_j_vs_mean_g": float(rho),
+    }
+
+
+def plot_profiles(results: dict, key: str, ylabel: str, path: Path) -> None:
+    """Mean ± sd of a [T, K] quantity over k for each evaluation policy (Figures 3 and 4)."""
+    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.2), squeeze=False)
+    for ax, (base, res) in zip(axes[0], results.items(), strict=True):
+        values = np.asarray(res[key])
+        ks = np.arange(1, values.shape[1] + 1)
+        ax.errorbar(ks, values.mean(0), yerr=values.std(0), marker="o", capsize=3)
+        ax.set_title(f"evaluation policy {base}", fontsize=9)
+        ax.set_xlabel("candidate k (ε = k/10)")
+        ax.set_xticks(ks)
+    axes[0][0].set_ylabel(ylabel)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_boxes(results: dict, path: Path) -> None:
+    """Ḡ obtained by AL, PL and OPT; whiskers at the 5 % and 95 % quantiles (Figure 5)."""
+    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.2), squeeze=False)
+    for ax, (base, res) in zip(axes[0], results.items(), strict=True):
+        data = [res["summary"][f"g_{name}"] for name in ("al", "pl", "opt")]
+        ax.boxplot(data, whis=(5, 95), showfliers=False)
+        ax.set_xticks([1, 2, 3], ["AL", "PL", "OPT"])
+        ax.set_title(f"evaluation policy {base}", fontsize=9)
+    axes[0][0].set_ylabel("obtained true generalisation error Ḡ")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    generator = torch.Generator().manual_seed(args.seed)
+    started = time.perf_counter()
+    results = {}
+    for i, base in enumerate(tqdm(BASE_POLICIES, desc="evaluation policies")):
+        res = run_policy(args, base, generator, seed=args.seed * 1000 + 10 * i)
+        results[base] = {
+            "j_prime": res["j_prime"].tolist(),
+            "g_true": res["g_true"].tolist(),
+            "summary": summarise(res["j_prime"], res["g_true"]),
+        }
+    wall = time.perf_counter() - started
+
+    header = (
+        f"{'evaluation policy':<18} {'AL':>9} {'PL':>9} {'OPT':>9} {'AL<=PL':>7} {'rho(J,G)':>9}"
+    )
+    print(f"\nOne-step experiment: {args.trials} trials, mean Ḡ obtained ({wall:.1f} s)")
+    print(header)
+    for base, res in results.items():
+        s = res["summary"]
+        print(
+            f"{base:<18} {s['mean_g_al']:9.5f} {s['mean_g_pl']:9.5f} {s['mean_g_opt']:9.5f} "
+            f"{s['share_al_at_least_as_good_as_pl']:7.2f} {s['spearman_mean_j_vs_mean_g']:9.3f}"
+        )
+    payload = {"args": dataclasses.asdict(args), "wall_seconds": wall, "results": results}
+    (out / "one_step.json").write_text(json.dumps(payload))
+    plot_profiles(results, "g_true", "true generalisation error Ḡ", out / "fig3_true_error.png")
+    plot_profiles(results, "j_prime", "estimated error J'", out / "fig4_j_estimate.png")
+    plot_boxes(results, out / "fig5_obtained_error.png")
+    print(f"wrote {out}/one_step.json and three figures")
+    return payload
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Linear-Q policies: probabilities, tie-breaking, sampling, TensorDict I/O."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torch_api.basis import GaussianActionBasis
+from torch_api.policies import (
+    LinearQPolicy,
+    epsilon_greedy_probs,
+    greedy_actions,
+    softmax_probs,
+)
+
+
+def _basis():
+    return GaussianActionBasis(centers=torch.tensor([[1.0], [5.0], [9.0]]), tau=1.5, num_actions=2)
+
+
+def test_epsilon_greedy_probabilities():
+    q = torch.tensor([[0.0, 1.0, 0.5]])
+    probs = epsilon_greedy_probs(q, 0.3)
+    torch.testing.assert_close(probs, torch.tensor([[0.1, 0.8, 0.1]], dtype=torch.float64))
+    # ε is capped at 1: uniform
+    torch.testing.assert_close(
+        epsilon_greedy_probs(q, 1.7), torch.full((1, 3), 1 / 3, dtype=torch.float64)
+    )
+    with pytest.raises(ValueError, match="epsilon must be >= 0"):
+        epsilon_greedy_probs(q, -0.1)
+
+
+def test_ties_break_to_lowest_index():
+    q = torch.tensor([[1.0, 1.0], [0.0, 2.0], [3.0, 3.0 + 1e-14]])
+    assert greedy_actions(q).tolist() == [0, 1, 0]
+
+
+def test_initial_policy_of_the_paper_is_all_left():
+    """θ = 1 gives Q̂_0(s, a) = Σ_b phi_b(s, a), equal for both actions: the tie goes to action 0."""
+    policy = LinearQPolicy(basis=_basis(), theta=torch.ones(8), epsilon=0.15)
+    probs = policy.action_probs(torch.arange(1, 11, dtype=torch.float32).unsqueeze(-1))
+    torch.testing.assert_close(probs[:, 0], torch.full((10,), 1 - 0.15 / 2, dtype=torch.float64))
+
+
+def test_softmax():
+    probs = softmax_probs(torch.tensor([0.0, 1.0]), beta=0.5)
+    ratio = probs[1] / probs[0]
+    assert ratio.item() == pytest.approx(torch.exp(torch.tensor(2.0)).item())
+    with pytest.raises(ValueError, match="beta must be > 0"):
+        softmax_probs(torch.tensor([0.0, 1.0]), beta=0.0)
+
+
+def test_module_writes_action_and_probs_and_samples_them():
+    policy = LinearQPolicy(
+        basis=_basis(),
+        theta=torch.linspace(-1, 1, 8),
+        epsilon=0.4,
+        generator=torch.Generator().manual_seed(3),
+    )
+    obs = torch.full((20000, 1), 5.0)
+    td = policy(TensorDict({"observation": obs}, batch_size=[20000]))
+    probs = td["sample_probs"][0]
+    freq = torch.bincount(td["action"], minlength=2).double() / 20000
+    assert (freq - probs).abs().max().item() < 0.02  # 5 standard errors of a proportion
+
+
+def test_same_generator_seed_same_actions_and_one_hot():
+    def run(seed):
+        policy = LinearQPolicy(
+            basis=_basis(),
+            theta=torch.zeros(8),
+            epsilon=1.0,
+            one_hot=True,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        return policy(TensorDict({"observation": torch.ones(50, 1)}, batch_size=[50]))["action"]
+
+    assert torch.equal(run(1), run(1))
+    assert not torch.equal(run(1), run(2))
+    assert run(1).shape == (50, 2)
+
+
+def test_trial_dimension_theta():
+    theta = torch.stack(
+        [torch.tensor([1.0, 0, 0, 0, -1, 0, 0, 0]), torch.tensor([-1.0, 0, 0, 0, 1, 0, 0, 0])]
+    )
+    policy = LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.0)
+    probs = policy.action_probs(torch.ones(2, 7, 1))  # [T, M, d]
+    assert probs[0, :, 0].eq(1).all() and probs[1, :, 1].eq(1).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"theta": torch.ones(7)}, "theta must have shape"),
+        ({"epsilon": None}, "give exactly one of epsilon"),
+        ({"beta": 1.0}, "give exactly one of epsilon"),
+        ({"theta": torch.full((8,), float("nan"))}, "NaN"),
+    ],
+)
+def test_bad_construction(kwargs, message):
+    args = {"basis": _basis(), "theta": torch.ones(8), "epsilon": 0.1} | kwargs
+    with pytest.raises(ValueError, match=message):
+        LinearQPolicy(**args)

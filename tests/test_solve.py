@@ -1,0 +1,132 @@
+"""weighted_ridge and j_criterion against dense references of the paper's formulas."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+from torch_api.solve import (
+    aggregate_identical_rows,
+    j_criterion,
+    j_from_moments,
+    weighted_moment,
+    weighted_ridge,
+)
+
+LAM = 1e-3
+
+
+def _data(gen, lead=(), n=60, b=7):
+    x = torch.randn(*lead, n, b, generator=gen, dtype=torch.float64)
+    w = torch.rand(*lead, n, generator=gen, dtype=torch.float64) * 2
+    r = torch.randn(*lead, n, generator=gen, dtype=torch.float64)
+    return x, w, r
+
+
+def _dense_theta(x, w, r, lam):
+    x, w, r = x.numpy(), w.numpy(), r.numpy()
+    n, b = x.shape
+    a = x.T @ np.diag(w) @ x / n + lam * np.eye(b)
+    return scipy.linalg.solve(a, x.T @ (w * r) / n, assume_a="pos")
+
+
+def _dense_j(x, w, u, lam):
+    """Algorithm 2 written out: L = (A + λI)^{-1} B with B = (1/n) Xᵀ W (a B × n matrix)."""
+    x, w, u = x.numpy(), w.numpy(), u.numpy()
+    n, b = x.shape
+    a = x.T @ np.diag(w) @ x / n
+    big_b = x.T @ np.diag(w) / n
+    ell = np.linalg.solve(a + lam * np.eye(b), big_b)
+    return np.trace(u @ ell @ ell.T)
+
+
+def test_weighted_ridge_matches_dense_solve():
+    gen = torch.Generator().manual_seed(0)
+    x, w, r = _data(gen)
+    theta = weighted_ridge(x, w, r, LAM)
+    np.testing.assert_allclose(theta.numpy(), _dense_theta(x, w, r, LAM), rtol=1e-8, atol=1e-12)
+
+
+def test_weighted_ridge_batched_equals_per_item():
+    gen = torch.Generator().manual_seed(1)
+    x, w, r = _data(gen, lead=(3, 2))
+    theta = weighted_ridge(x, w, r, LAM)
+    assert theta.shape == (3, 2, 7)
+    for i in range(3):
+        for j in range(2):
+            np.testing.assert_allclose(
+                theta[i, j].numpy(), _dense_theta(x[i, j], w[i, j], r[i, j], LAM), rtol=1e-8
+            )
+
+
+def test_j_criterion_matches_algorithm_2_dense_form():
+    gen = torch.Generator().manual_seed(2)
+    x, w, _ = _data(gen, lead=(5, 4), n=40)
+    z = torch.randn(5, 1, 7, 7, generator=gen, dtype=torch.float64)
+    u = z @ z.mT / 7  # symmetric PSD, one per repeat, shared by the candidates
+    j = j_criterion(x, w, u, LAM)
+    assert j.shape == (5, 4)
+    for zi in range(5):
+        for k in range(4):
+            ref = _dense_j(x[zi, k], w[zi, k], u[zi, 0], LAM)
+            assert abs(j[zi, k].item() - ref) <= 1e-8 * abs(ref)
+
+
+def test_aggregating_identical_rows_changes_nothing():
+    gen = torch.Generator().manual_seed(3)
+    distinct = torch.randn(2, 5, 6, generator=gen, dtype=torch.float64)
+    pick = torch.randint(0, 5, (2, 300), generator=gen)
+    x = torch.gather(distinct, 1, pick.unsqueeze(-1).expand(2, 300, 6))
+    w = torch.rand(2, 300, generator=gen, dtype=torch.float64)
+    r = torch.randn(2, 300, generator=gen, dtype=torch.float64)
+    u = torch.eye(6, dtype=torch.float64)
+    agg = aggregate_identical_rows(x, w, r)
+    assert agg.x.shape[-2] <= 5
+    j_full = j_criterion(x, w, u, LAM)
+    j_agg = j_criterion(
+        agg.x, agg.w, u, LAM, num_samples=agg.num_samples, sq_weights=agg.sq_weights
+    )
+    torch.testing.assert_close(j_agg, j_full, rtol=1e-10, atol=0)
+    theta_full = weighted_ridge(x, w, r, LAM)
+    theta_agg = weighted_ridge(agg.x, agg.w, agg.r, LAM, num_samples=agg.num_samples)
+    torch.testing.assert_close(theta_agg, theta_full, rtol=1e-9, atol=1e-12)
+
+
+def test_moments_and_j_from_moments_agree():
+    gen = torch.Generator().manual_seed(4)
+    x, w, _ = _data(gen, n=30)
+    dense = (x.mT * w) @ x
+    torch.testing.assert_close(weighted_moment(x, w), dense)
+    u = torch.eye(7, dtype=torch.float64)
+    j = j_from_moments(dense / 30, ((x.mT * w**2) @ x) / 900, u, LAM)
+    assert abs(j.item() - _dense_j(x, w, u, LAM)) <= 1e-8 * abs(j.item())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"lam": 0.0}, "lam must be > 0"),
+        ({"lam": -1.0}, "lam must be > 0"),
+        ({"r": torch.tensor([1.0, float("nan"), 0.0])}, "r \\(rewards\\) contains NaN"),
+        ({"r": torch.zeros(4)}, "r must have shape"),
+        ({"w": torch.zeros(2)}, "w must have shape"),
+        ({"w": torch.tensor([1.0, -1.0, 1.0])}, "non-negative"),
+        ({"x": torch.zeros(0, 2), "w": torch.zeros(0), "r": torch.zeros(0)}, "n = 0"),
+    ],
+)
+def test_weighted_ridge_rejects_bad_input(kwargs, message):
+    args = {"x": torch.ones(3, 2), "w": torch.ones(3), "r": torch.ones(3), "lam": LAM}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        weighted_ridge(args["x"], args["w"], args["r"], args["lam"])
+
+
+def test_rank_deficient_design_warns_with_condition_number():
+    x = torch.ones(20, 4, dtype=torch.float64)  # rank 1
+    with pytest.warns(RuntimeWarning, match="condition number"):
+        weighted_ridge(x, torch.ones(20), torch.ones(20), 1e-14, check_conditioning=True)
+
+
+def test_j_criterion_rejects_wrong_u_shape():
+    with pytest.raises(ValueError, match="u must have shape"):
+        j_criterion(torch.ones(3, 2), torch.ones(3), torch.eye(3), LAM)

@@ -1,0 +1,1 @@
+"""Active policy iteration for PyTorch and TorchRL (Akiyama, Hachiya & Sugiyama, 2010)."""

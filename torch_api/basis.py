@@ -1,0 +1,100 @@
+"""Gaussian state kernels times an action indicator (paper eq. 9-10, 50, 64)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["GaussianActionBasis"]
+
+
+class GaussianActionBasis(nn.Module):
+    """The paper's basis: ``phi(s, a) = e_a ⊗ [k_1(s), ..., k_C(s), 1]`` (eq. 50, 64).
+
+    ``k_c(s) = exp(-||s - c_c||² / (2 τ²))``. Each action owns one block of ``C + 1`` entries,
+    so ``B = A (C + 1)``. The paper interleaves the actions; this module lays the blocks out one
+    action after another, which changes nothing downstream (SPEC section 3).
+
+    Any module with the same two methods (``phi_all`` and ``phi``) and the attributes
+    ``num_features`` and ``num_actions`` can stand in for this one.
+
+    Args:
+        centers: Gaussian centres ``[C, d]``.
+        tau: kernel width τ > 0.
+        num_actions: number of discrete actions A.
+
+    Example:
+        >>> basis = GaussianActionBasis(centers=torch.tensor([[1.0], [3.0]]), tau=1.5,
+        ...                             num_actions=2)
+        >>> basis.num_features
+        6
+        >>> basis.phi_all(torch.zeros(7, 1)).shape
+        torch.Size([7, 2, 6])
+        >>> basis.phi(torch.zeros(7, 1), torch.zeros(7, dtype=torch.long)).shape
+        torch.Size([7, 6])
+    """
+
+    def __init__(self, *, centers: torch.Tensor, tau: float, num_actions: int) -> None:
+        super().__init__()
+        centers = torch.as_tensor(centers)
+        if centers.ndim != 2 or centers.shape[0] == 0:
+            raise ValueError(
+                f"centers must have shape [C, d] with C >= 1, got {tuple(centers.shape)}"
+            )
+        if not torch.isfinite(centers).all():
+            raise ValueError("centers must be finite")
+        if not tau > 0:
+            raise ValueError(f"tau must be > 0, got {tau}")
+        if num_actions < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
+        self.register_buffer("centers", centers.to(torch.get_default_dtype()))
+        self.tau = float(tau)
+        self.num_actions = int(num_actions)
+        self.num_kernels = centers.shape[0] + 1
+        self.num_features = self.num_actions * self.num_kernels
+
+    @property
+    def obs_dim(self) -> int:
+        return self.centers.shape[1]
+
+    def kernels(self, obs: torch.Tensor) -> torch.Tensor:
+        """State features ``[k_1(s), ..., k_C(s), 1]``: obs ``[..., d]`` -> ``[..., C + 1]``."""
+        if obs.shape[-1] != self.obs_dim:
+            raise ValueError(
+                f"obs must have a trailing dimension of {self.obs_dim}, "
+                f"got shape {tuple(obs.shape)}"
+            )
+        centers = self.centers.to(device=obs.device, dtype=obs.dtype)
+        sq_dist = (obs.unsqueeze(-2) - centers).pow(2).sum(-1)
+        gauss = torch.exp(-sq_dist / (2.0 * self.tau**2))
+        return torch.cat([gauss, torch.ones_like(gauss[..., :1])], dim=-1)
+
+    def phi_all(self, obs: torch.Tensor) -> torch.Tensor:
+        """Basis for every action: obs ``[..., d]`` -> ``[..., A, B]``."""
+        k = self.kernels(obs)
+        eye = torch.eye(self.num_actions, dtype=k.dtype, device=k.device)
+        # [..., A, 1, A] * [..., 1, C+1, 1] -> block-diagonal rows, flattened per action.
+        blocks = eye.unsqueeze(-1) * k.unsqueeze(-2).unsqueeze(-2)
+        return blocks.reshape(*k.shape[:-1], self.num_actions, self.num_features)
+
+    def phi(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Basis of the taken action: obs ``[..., d]``, action ``[...]`` (index) -> ``[..., B]``."""
+        action = torch.as_tensor(action, device=obs.device)
+        if action.shape != obs.shape[:-1]:
+            raise ValueError(
+                f"action must have shape {tuple(obs.shape[:-1])} (obs without its last dim), "
+                f"got {tuple(action.shape)}"
+            )
+        if action.numel() and (action.min() < 0 or action.max() >= self.num_actions):
+            raise ValueError(
+                f"action indices must lie in [0, {self.num_actions}), got range "
+                f"[{int(action.min())}, {int(action.max())}]"
+            )
+        k = self.kernels(obs)
+        out = k.new_zeros(*k.shape[:-1], self.num_actions, self.num_kernels)
+        index = action.long()[..., None, None].expand(*k.shape[:-1], 1, self.num_kernels)
+        out.scatter_(-2, index, k.unsqueeze(-2))
+        return out.reshape(*k.shape[:-1], self.num_features)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.phi(obs, action)

@@ -1,0 +1,282 @@
+"""Active policy iteration and its passive baseline (paper section 4.1, Algorithm 1)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+from torchrl.envs import EnvBase
+from tqdm import tqdm
+
+from torch_api.data import EpisodeBuffer, collect_episodes
+from torch_api.design import build_design
+from torch_api.policies import LinearQPolicy
+from torch_api.psi import PSI_MODES, PsiHat
+from torch_api.selector import (
+    PAPER_EPSILON_OFFSETS,
+    SamplingPolicySelector,
+    candidate_epsilons,
+)
+from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
+
+__all__ = ["ActivePolicyIteration", "IterationRecord", "paper_epsilon"]
+
+MODES = ("active", "passive")
+IMPROVEMENTS = ("epsilon_greedy", "softmax")
+SOFTMAX_CANDIDATE_SCALES = (1.0, 2.0, 5.0, 20.0)  # softmax candidates: β times these
+
+
+def paper_epsilon(iteration: int) -> float:
+    """ε of the evaluation policy of iteration l (1-based): ``0.15 / l`` (paper sections 4.2, 5)."""
+    return 0.15 / iteration
+
+
+@dataclass
+class IterationRecord:
+    """What happened in one iteration l (1-based) of Algorithm 1.
+
+    Attributes:
+        iteration: l.
+        chosen: index of the sampling-policy candidate used (0 = the evaluation policy itself;
+            always 0 in passive mode).
+        sampling_rule: ε (or β) of the sampling policy used.
+        j_mean: J' of every candidate (active mode), else None.
+        j_all: J of every repeat and candidate ``[Z][K]`` (active mode), else None.
+        episodes_bought: rewarded episodes collected in this iteration.
+        rewarded_transitions: rewarded transitions bought so far (cumulative).
+        reward_free_transitions: reward-free transitions collected so far (cumulative).
+        performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
+        seconds: wall time of the iteration (evaluation callback excluded).
+        theta: θ_l.
+    """
+
+    iteration: int
+    chosen: int
+    sampling_rule: float
+    j_mean: list | None
+    j_all: list | None
+    episodes_bought: int
+    rewarded_transitions: int
+    reward_free_transitions: int
+    performance: dict | None
+    seconds: float
+    theta: list = field(repr=False)
+
+
+class ActivePolicyIteration:
+    """Sample-reuse least-squares policy iteration with active sampling-policy selection.
+
+    Algorithm 1 of Akiyama, Hachiya & Sugiyama (2010). In iteration l = 1 … L:
+
+    1. the sampling policy is the J'-chosen candidate (``mode="active"``, Algorithm 2, through
+       :class:`~torch_api.selector.SamplingPolicySelector`) or pi_l itself (``"passive"``);
+    2. ``schedule[l-1]`` rewarded episodes of N steps are bought with it and stored;
+    3. θ_l is fitted on ALL rewarded episodes so far (sample reuse, eq. 56), psi_hat on that
+       union with pi_l and importance weights towards pi_l;
+    4. pi_{l+1} is the ε-greedy (ε = ``epsilon_schedule(l+1)``) or softmax policy of θ_lᵀphi.
+
+    Works with any TorchRL environment with discrete actions (categorical or one-hot) and any
+    basis module with ``phi``/``phi_all``/``num_features``/``num_actions``.
+
+    Args:
+        env: the environment whose rewards are bought (a TorchRL ``EnvBase``).
+        basis: the basis module (e.g. :class:`~torch_api.basis.GaussianActionBasis`).
+        schedule: episodes bought per iteration ``(M_1, …, M_L)``, each ≥ 1.
+        num_steps: N, steps per episode.
+        gamma: discount γ in (0, 1].
+        mode: ``"active"`` or ``"passive"``.
+        lam: λ > 0.
+        num_repeats: Z for J'.
+        reward_free_env: environment for the selector's reward-free rollouts, or a callable
+            ``batch_size -> env`` (give one whose batch is ``Z·K·M_l`` for speed). Default: env.
+        psi_mode: ``"grouped"`` (finite states), ``"single"`` (the paper's continuous choice)
+            or ``"knn"``; ``knn_k`` its k.
+        initial_theta: θ_0 of pi_1 (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67).
+        epsilon_schedule: ε of pi_l as a function of l (default ``0.15 / l``).
+        candidate_offsets: candidates ε_l + offset (eq. 59).
+        improvement: ``"epsilon_greedy"`` (the paper) or ``"softmax"`` (eq. 7; pi_l uses
+            ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
+        beta: softmax temperature.
+        evaluate: optional callback ``policy -> dict`` measuring pi_{l+1} after every iteration.
+        seed: seed of the policies' random stream (environments carry their own seeds).
+
+    Example:
+        >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
+        >>> from torch_api.basis import GaussianActionBasis
+        >>> basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU,
+        ...                             num_actions=2)
+        >>> api = ActivePolicyIteration(
+        ...     env=ChainWalkEnv(batch_size=5, seed=0), basis=basis, schedule=(5, 3),
+        ...     num_steps=10, gamma=0.9, psi_mode="grouped",
+        ...     reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=1))
+        >>> history = api.run()
+        >>> len(history), api.rewarded_transitions
+        (2, 80)
+    """
+
+    def __init__(
+        self,
+        *,
+        env: EnvBase,
+        basis: nn.Module,
+        schedule: Sequence[int],
+        num_steps: int,
+        gamma: float,
+        mode: str = "active",
+        lam: float = DEFAULT_LAMBDA,
+        num_repeats: int = 5,
+        reward_free_env: EnvBase | Callable[[int], EnvBase] | None = None,
+        psi_mode: str = "single",
+        knn_k: int = 5,
+        initial_theta: torch.Tensor | None = None,
+        epsilon_schedule: Callable[[int], float] = paper_epsilon,
+        candidate_offsets: Sequence[float] = PAPER_EPSILON_OFFSETS,
+        improvement: str = "epsilon_greedy",
+        beta: float | None = None,
+        evaluate: Callable[[LinearQPolicy], dict] | None = None,
+        seed: int = 0,
+    ) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if improvement not in IMPROVEMENTS:
+            raise ValueError(f"improvement must be one of {IMPROVEMENTS}, got {improvement!r}")
+        if improvement == "softmax" and not (beta is not None and beta > 0):
+            raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
+        schedule = [int(m) for m in schedule]
+        if not schedule or min(schedule) < 1:
+            raise ValueError(
+                f"schedule must be a non-empty list of episode counts >= 1, got {schedule}"
+            )
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        if not 0 < gamma <= 1:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        if not lam > 0:
+            raise ValueError(f"lam must be > 0, got {lam}")
+        if psi_mode not in PSI_MODES:
+            raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
+        if not candidate_offsets:
+            raise ValueError("candidate_offsets must not be empty")
+        self.env = env
+        self.basis = basis
+        self.schedule = schedule
+        self.num_steps = int(num_steps)
+        self.gamma = float(gamma)
+        self.mode = mode
+        self.lam = float(lam)
+        self.num_repeats = int(num_repeats)
+        self.epsilon_schedule = epsilon_schedule
+        self.candidate_offsets = tuple(candidate_offsets)
+        self.improvement = improvement
+        self.beta = beta
+        self.evaluate = evaluate
+        self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
+        self.generator = torch.Generator().manual_seed(seed)
+        theta = torch.ones(basis.num_features, dtype=torch.float64)
+        if initial_theta is not None:
+            theta = torch.as_tensor(initial_theta, dtype=torch.float64)
+        self.theta = theta
+        self.iteration = 0  # iterations completed
+        self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))
+        self.reward_free = EpisodeBuffer(
+            rewarded=False,
+            capacity=self.num_repeats * len(self.candidate_offsets) * sum(schedule),
+        )
+        self.history: list[IterationRecord] = []
+        self._reward_free_transitions = 0
+        self.selector = SamplingPolicySelector(
+            env=reward_free_env if reward_free_env is not None else env,
+            psi=self.psi,
+            num_episodes=1,  # set per iteration (M_l)
+            num_steps=self.num_steps,
+            num_repeats=self.num_repeats,
+            lam=self.lam,
+            generator=self.generator,
+        )
+        self.policy = self._policy(self.theta, 1)
+
+    @property
+    def rewarded_transitions(self) -> int:
+        """Rewarded transitions bought so far."""
+        return self.rewarded.num_transitions if len(self.rewarded) else 0
+
+    def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
+        """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""
+        if self.improvement == "softmax":
+            rule = {"beta": self.beta}
+        else:
+            rule = {"epsilon": self.epsilon_schedule(iteration)}
+        return LinearQPolicy(basis=self.basis, theta=theta, generator=self.generator, **rule)
+
+    def candidates(self) -> list[LinearQPolicy]:
+        """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
+        l_next = self.iteration + 1
+        if self.improvement == "softmax":
+            return [self.policy.with_rule(beta=self.beta * s) for s in SOFTMAX_CANDIDATE_SCALES]
+        eps = candidate_epsilons(self.epsilon_schedule(l_next), self.candidate_offsets)
+        return [self.policy.with_rule(epsilon=e) for e in eps]
+
+    def step(self) -> IterationRecord:
+        """Run one iteration of Algorithm 1 and return its record."""
+        if self.iteration >= len(self.schedule):
+            raise RuntimeError(f"all {len(self.schedule)} iterations of the schedule are done")
+        started = time.perf_counter()
+        l_now = self.iteration + 1
+        num_episodes = self.schedule[self.iteration]
+        candidates = self.candidates()
+        chosen, j_mean, j_all = 0, None, None
+        if self.mode == "active":
+            self.selector.num_episodes = num_episodes
+            earlier = self.rewarded.episodes() if len(self.rewarded) else None
+            selection = self.selector.select(self.policy, candidates, earlier, iteration=l_now)
+            chosen = selection.index
+            j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
+            self._reward_free_transitions += selection.reward_free_transitions
+            self.reward_free.extend(selection.episodes.reshape(-1, self.num_steps))
+        sampling = candidates[chosen]
+        bought = collect_episodes(
+            self.env,
+            sampling,
+            num_episodes=num_episodes,
+            num_steps=self.num_steps,
+            rewarded=True,
+            iteration=l_now,
+            policy_id=chosen,
+        )
+        self.rewarded.extend(bought)
+        # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
+        design = build_design(self.rewarded.episodes(), self.policy, self.psi)
+        self.theta = weighted_ridge(
+            design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+        )
+        self.iteration = l_now
+        self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
+        seconds = time.perf_counter() - started
+        performance = self.evaluate(self.policy) if self.evaluate is not None else None
+        record = IterationRecord(
+            iteration=l_now,
+            chosen=chosen,
+            sampling_rule=float(
+                sampling.beta if self.improvement == "softmax" else sampling.epsilon
+            ),
+            j_mean=j_mean,
+            j_all=j_all,
+            episodes_bought=num_episodes,
+            rewarded_transitions=self.rewarded_transitions,
+            reward_free_transitions=self._reward_free_transitions,
+            performance=performance,
+            seconds=seconds,
+            theta=self.theta.tolist(),
+        )
+        self.history.append(record)
+        return record
+
+    def run(self, *, progress: bool = False) -> list[IterationRecord]:
+        """Run the remaining iterations; returns the whole history."""
+        remaining = range(self.iteration, len(self.schedule))
+        for _ in tqdm(remaining, desc=f"API ({self.mode})", disable=not progress):
+            self.step()
+        return self.history

@@ -1,0 +1,304 @@
+"""Policies derived from a linear Q-function ``Q̂(s, a) = θᵀ phi(s, a)`` (paper eq. 7-9, 57-59).
+
+Pure functions turn Q-values ``[..., A]`` into action probabilities; :class:`LinearQPolicy` is a
+TensorDict module that samples an action and records the whole distribution (``sample_probs``)
+so that importance weights can be computed later against any other policy.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+__all__ = [
+    "ActionProbsPolicy",
+    "LinearQPolicy",
+    "TabularPolicy",
+    "epsilon_greedy_probs",
+    "greedy_actions",
+    "linear_q_values",
+    "softmax_probs",
+]
+
+TIE_RTOL = 1e-10  # Q-values this close (relative) count as a tie, broken to the lowest index
+
+
+def linear_q_values(phi_all: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """``Q̂(s, ·) = θᵀ phi(s, ·)`` (eq. 9).
+
+    phi_all ``[*T, ..., A, B]``, θ ``[*T, B]`` -> ``[*T, ..., A]``.
+
+    θ's leading dims ``*T`` (e.g. a trial dimension) must be a prefix of phi_all's.
+    """
+    if theta.shape[-1] != phi_all.shape[-1]:
+        raise ValueError(
+            f"theta has {theta.shape[-1]} entries but the basis has {phi_all.shape[-1]} features"
+        )
+    lead = theta.shape[:-1]
+    if phi_all.shape[: len(lead)] != lead:
+        raise ValueError(
+            f"theta's leading dims {tuple(lead)} must prefix the observation dims "
+            f"{tuple(phi_all.shape[:-2])}"
+        )
+    extra = phi_all.ndim - 1 - theta.ndim
+    view = theta.reshape(*lead, *([1] * extra), 1, theta.shape[-1])
+    return (phi_all * view.to(phi_all.dtype)).sum(-1)
+
+
+def greedy_actions(q: torch.Tensor) -> torch.Tensor:
+    """``argmax_a q[..., a]``, ties (within ``TIE_RTOL``) to the lowest index.
+
+    ``[..., A] -> [...]``.
+    """
+    best = q.max(-1, keepdim=True).values
+    is_max = q >= best - TIE_RTOL * (1.0 + best.abs())
+    return is_max.to(torch.int8).argmax(-1)  # argmax returns the first maximal index
+
+
+def _check_epsilon(epsilon) -> torch.Tensor:
+    eps = torch.as_tensor(epsilon, dtype=torch.float64)
+    if not torch.isfinite(eps).all() or (eps < 0).any():
+        raise ValueError(f"epsilon must be >= 0, got {epsilon}")
+    return eps.clamp(max=1.0)  # SPEC section 3: ε is capped at 1 (uniform)
+
+
+def epsilon_greedy_probs(q: torch.Tensor, epsilon) -> torch.Tensor:
+    """ε-greedy probabilities (eq. 8): the greedy action gets ``1 - ε + ε/A``, the others ``ε/A``.
+
+    Args:
+        q: Q-values ``[..., A]``.
+        epsilon: ε ≥ 0, a number or a tensor broadcastable to ``[...]``; values above 1 are
+            capped at 1 (uniform).
+
+    Returns:
+        ``[..., A]`` in float64.
+    """
+    eps = _check_epsilon(epsilon).to(q.device)
+    num_actions = q.shape[-1]
+    greedy = torch.nn.functional.one_hot(greedy_actions(q), num_actions).to(torch.float64)
+    eps = eps.unsqueeze(-1) if eps.ndim else eps
+    return (1.0 - eps) * greedy + eps / num_actions
+
+
+def softmax_probs(q: torch.Tensor, beta: float) -> torch.Tensor:
+    """Softmax probabilities ``pi(a|s) ∝ exp(Q̂(s, a) / β)`` (eq. 7): ``[..., A] -> [..., A]``."""
+    if not beta > 0:
+        raise ValueError(f"beta must be > 0, got {beta}")
+    return torch.softmax(q.to(torch.float64) / beta, dim=-1)
+
+
+class ActionProbsPolicy(TensorDictModuleBase):
+    """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
+
+    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, samples an
+    action with the policy's own ``torch.Generator`` and writes ``action`` (an index, or one-hot
+    with ``one_hot=True``) and ``sample_probs`` (the whole distribution ``[..., A]``, float64).
+    """
+
+    def __init__(
+        self,
+        *,
+        num_actions: int,
+        one_hot: bool = False,
+        generator: torch.Generator | None = None,
+        observation_key="observation",
+        action_key="action",
+        probs_key="sample_probs",
+    ) -> None:
+        super().__init__()
+        self.num_actions = int(num_actions)
+        self.one_hot = one_hot
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.observation_key = observation_key
+        self.action_key = action_key
+        self.probs_key = probs_key
+        self.in_keys = [observation_key]
+        self.out_keys = [action_key, probs_key]
+
+    def _io_kwargs(self) -> dict:
+        return {
+            "one_hot": self.one_hot,
+            "generator": self.generator,
+            "observation_key": self.observation_key,
+            "action_key": self.action_key,
+            "probs_key": self.probs_key,
+        }
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        """``pi(·|s)``: obs ``[..., d]`` -> ``[..., A]`` in float64."""
+        raise NotImplementedError
+
+    def sample(self, probs: torch.Tensor) -> torch.Tensor:
+        """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator."""
+        uniform = torch.rand(
+            probs.shape[:-1],
+            generator=self.generator,
+            dtype=torch.float64,
+            device=self.generator.device,
+        ).to(probs.device)
+        cdf = probs.cumsum(-1)
+        return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        probs = self.action_probs(tensordict.get(self.observation_key))
+        action = self.sample(probs)
+        if self.one_hot:
+            action = torch.nn.functional.one_hot(action, self.num_actions).to(torch.bool)
+        tensordict.set(self.action_key, action)
+        tensordict.set(self.probs_key, probs)
+        return tensordict
+
+
+class TabularPolicy(ActionProbsPolicy):
+    """A policy given as a probability table over a finite state space.
+
+    Args:
+        table: ``[*T, S, A]`` probabilities, rows summing to 1 (``*T``: e.g. one table per
+            environment of a batch, prefixing the observation dims).
+        state_index: maps an observation ``[..., d]`` to its row index ``[...]`` (long).
+        one_hot, generator, observation_key, action_key, probs_key: as in
+            :class:`ActionProbsPolicy`.
+
+    Example:
+        >>> table = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=torch.float64)
+        >>> policy = TabularPolicy(table=table, state_index=lambda obs: obs[..., 0].long())
+        >>> policy.action_probs(torch.tensor([[1.0], [0.0]]))
+        tensor([[0.2000, 0.8000],
+                [0.9000, 0.1000]], dtype=torch.float64)
+    """
+
+    def __init__(self, *, table: torch.Tensor, state_index, **io) -> None:
+        table = torch.as_tensor(table, dtype=torch.float64)
+        if table.ndim < 2:
+            raise ValueError(f"table must have shape [..., S, A], got {tuple(table.shape)}")
+        _check_distribution(table, "table")
+        super().__init__(num_actions=table.shape[-1], **io)
+        self.register_buffer("table", table)
+        self.state_index = state_index
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        index = self.state_index(obs).long()
+        lead = self.table.shape[:-2]
+        if index.shape[: len(lead)] != lead:
+            raise ValueError(
+                f"the table's leading dims {tuple(lead)} must prefix the observation dims "
+                f"{tuple(index.shape)}"
+            )
+        num_states = self.table.shape[-2]
+        if index.numel() and (index.min() < 0 or index.max() >= num_states):
+            raise ValueError(
+                f"state_index gave rows outside [0, {num_states}): "
+                f"[{int(index.min())}, {int(index.max())}]"
+            )
+        extra = index.ndim - len(lead)
+        table = self.table.reshape(*lead, *([1] * extra), *self.table.shape[-2:])
+        table = table.expand(*index.shape, *self.table.shape[-2:])
+        return torch.gather(
+            table, -2, index[..., None, None].expand(*index.shape, 1, self.num_actions)
+        ).squeeze(-2)
+
+
+def _check_distribution(probs: torch.Tensor, name: str) -> None:
+    if not torch.isfinite(probs).all() or (probs < 0).any():
+        raise ValueError(f"{name} must hold finite, non-negative probabilities")
+    total = probs.sum(-1)
+    worst = (total - 1).abs().max().item() if total.numel() else 0.0
+    if worst > 1e-6:
+        raise ValueError(
+            f"{name} rows must sum to 1, one sums to {1 + worst:.6g} (off by {worst:.3g})"
+        )
+
+
+class LinearQPolicy(ActionProbsPolicy):
+    """ε-greedy, greedy or softmax policy over ``Q̂ = θᵀ phi`` as a TensorDict module.
+
+    Reads ``observation`` and writes ``action`` (an index, or one-hot with ``one_hot=True``) and
+    ``sample_probs`` (the full distribution ``[..., A]``, float64) so that the episode can be
+    importance-weighted later. Sampling uses the policy's own ``torch.Generator``.
+
+    Args:
+        basis: module with ``phi_all(obs [..., d]) -> [..., A, B]`` and ``num_features``.
+        theta: ``[B]`` or ``[*T, B]`` (a leading trial dimension prefixing the observation dims).
+        epsilon: ε of the ε-greedy rule (0 is greedy). Exclusive with ``beta``.
+        beta: temperature of the softmax rule (eq. 7). Exclusive with ``epsilon``.
+        one_hot: write one-hot actions (for envs with a ``OneHot`` action spec).
+        generator: random stream for sampling (default: a fresh CPU generator seeded 0).
+        observation_key, action_key, probs_key: tensordict keys.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torch_api.basis import GaussianActionBasis
+        >>> basis = GaussianActionBasis(centers=torch.tensor([[1.0], [9.0]]), tau=1.5,
+        ...                             num_actions=2)
+        >>> policy = LinearQPolicy(basis=basis, theta=torch.ones(6), epsilon=0.15)
+        >>> td = policy(TensorDict({"observation": torch.ones(4, 1)}, batch_size=[4]))
+        >>> td["action"].shape, td["sample_probs"].shape
+        (torch.Size([4]), torch.Size([4, 2]))
+    """
+
+    def __init__(
+        self,
+        *,
+        basis: nn.Module,
+        theta: torch.Tensor,
+        epsilon: float | torch.Tensor | None = None,
+        beta: float | None = None,
+        one_hot: bool = False,
+        generator: torch.Generator | None = None,
+        observation_key="observation",
+        action_key="action",
+        probs_key="sample_probs",
+    ) -> None:
+        if (epsilon is None) == (beta is None):
+            raise ValueError(
+                f"give exactly one of epsilon (ε-greedy) or beta (softmax), got epsilon={epsilon}, "
+                f"beta={beta}"
+            )
+        theta = torch.as_tensor(theta, dtype=torch.float64)
+        if theta.ndim == 0 or theta.shape[-1] != basis.num_features:
+            raise ValueError(
+                f"theta must have shape [..., {basis.num_features}] (the basis width), "
+                f"got {tuple(theta.shape)}"
+            )
+        if not torch.isfinite(theta).all():
+            raise ValueError("theta contains NaN or inf")
+        if epsilon is not None:
+            epsilon = _check_epsilon(epsilon)
+        if beta is not None and not beta > 0:
+            raise ValueError(f"beta must be > 0, got {beta}")
+        super().__init__(
+            num_actions=basis.num_actions,
+            one_hot=one_hot,
+            generator=generator,
+            observation_key=observation_key,
+            action_key=action_key,
+            probs_key=probs_key,
+        )
+        self.basis = basis
+        self.register_buffer("theta", theta)
+        self.epsilon = epsilon
+        self.beta = beta
+
+    def q_values(self, obs: torch.Tensor) -> torch.Tensor:
+        """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
+        return linear_q_values(self.basis.phi_all(obs.to(torch.float64)), self.theta)
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        """``pi(·|s)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
+        q = self.q_values(obs)
+        if self.beta is not None:
+            return softmax_probs(q, self.beta)
+        eps = self.epsilon
+        if eps.ndim:  # per-trial ε [*T]: align with the observation dims
+            eps = eps.reshape(*eps.shape, *([1] * (q.ndim - 1 - eps.ndim)))
+        return epsilon_greedy_probs(q, eps)
+
+    def with_rule(
+        self, *, epsilon: float | torch.Tensor | None = None, beta: float | None = None
+    ) -> LinearQPolicy:
+        """The same θ and basis under another rule (e.g. the candidates of eq. 59)."""
+        return LinearQPolicy(
+            basis=self.basis, theta=self.theta, epsilon=epsilon, beta=beta, **self._io_kwargs()
+        )

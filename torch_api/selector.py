@@ -1,0 +1,298 @@
+"""Sampling-policy selection by the reward-free J criterion (paper section 3.4, Algorithm 2)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+from torch_api.data import collect_episodes
+from torch_api.design import build_design
+from torch_api.policies import ActionProbsPolicy
+from torch_api.psi import PsiHat
+from torch_api.solve import DEFAULT_LAMBDA, j_criterion, weighted_moment
+
+__all__ = [
+    "PolicyStack",
+    "SamplingPolicySelector",
+    "Selection",
+    "candidate_epsilons",
+    "j_values",
+]
+
+PAPER_EPSILON_OFFSETS = (0.0, 0.15, 0.5, 0.85)  # eq. 59: candidates ε_l + offset
+_STATE_ACTION_KEYS = (
+    "observation",
+    "action",
+    "sample_probs",
+    ("next", "observation"),
+    ("next", "terminated"),
+    "mask",
+)
+
+
+def candidate_epsilons(epsilon: float, offsets: Sequence[float] = PAPER_EPSILON_OFFSETS) -> list:
+    """ε of the sampling-policy candidates of eq. 59: ``[ε + o for o in offsets]`` capped at 1."""
+    if not 0 <= epsilon <= 1:
+        raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}")
+    return [min(1.0, epsilon + o) for o in offsets]
+
+
+def j_values(
+    candidate_episodes: TensorDictBase,
+    earlier_episodes: TensorDictBase | None,
+    policy,
+    psi: PsiHat,
+    lam: float = DEFAULT_LAMBDA,
+) -> torch.Tensor:
+    """J of every candidate from reward-free episodes (eq. 42-46, Algorithm 2 steps 2-4).
+
+    For each leading index (a repeat z, a trial, ...): ``D̄_0`` = all candidates' episodes plus
+    the earlier sampling sets; psi_hat is computed on ``D̄_0`` under the evaluation policy;
+    ``Ũ = (1/n_0) Σ_{D̄_0} w x xᵀ``; candidate k's set ``Π_k`` = its own episodes plus the
+    earlier sets, and ``J_k = tr(Ũ (A_k + λI)^{-1} C_k (A_k + λI)^{-1})``, all K in one
+    batched call.
+
+    Args:
+        candidate_episodes: reward-free episodes ``[..., K, M, N]``.
+        earlier_episodes: earlier sampling sets ``[M', N]`` (rewards, if any, are ignored) or
+            None in the first iteration.
+        policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
+            ``[...]``.
+        psi: the psi_hat module.
+        lam: λ.
+
+    Returns:
+        J ``[..., K]`` (float64).
+    """
+    if candidate_episodes.batch_dims < 3:
+        raise ValueError(
+            "candidate_episodes must have shape [..., K, M, N], "
+            f"got {tuple(candidate_episodes.shape)}"
+        )
+    cand = candidate_episodes.select(*_STATE_ACTION_KEYS, strict=False)
+    *lead, num_candidates, num_episodes, num_steps = cand.shape
+    pool = cand.reshape(*lead, num_candidates * num_episodes, num_steps)
+    if earlier_episodes is not None and earlier_episodes.shape[0] > 0:
+        if earlier_episodes.shape[-1] != num_steps:
+            raise ValueError(
+                f"earlier episodes have N = {earlier_episodes.shape[-1]} steps, candidates "
+                f"N = {num_steps}"
+            )
+        prev = earlier_episodes.select(*pool.keys(include_nested=True, leaves_only=True))
+        prev = prev.expand(*lead, *prev.shape[-2:]).clone()
+        pool = torch.cat([pool, prev], dim=-2)
+    design = build_design(pool, policy, psi)
+    n0 = design.num_samples.to(torch.float64)
+    u_tilde = weighted_moment(design.x, design.w) / n0[..., None, None]
+
+    split = num_candidates * num_episodes * num_steps
+
+    def per_candidate(t: torch.Tensor) -> torch.Tensor:
+        """Rows of ``Π_k``: candidate k's own samples + earlier sets ``[..., K, n_k, *]``."""
+        axis = len(lead)  # the sample axis of the pooled design
+        tail = t.shape[axis + 1 :]
+        own = t.narrow(axis, 0, split).reshape(
+            *lead, num_candidates, num_episodes * num_steps, *tail
+        )
+        rest = t.narrow(axis, split, t.shape[axis] - split).unsqueeze(axis)
+        rest = rest.expand(*lead, num_candidates, *rest.shape[axis + 1 :])
+        return torch.cat([own, rest], dim=axis + 1)
+
+    x_k = per_candidate(design.x)
+    w_k = per_candidate(design.w)
+    n_k = per_candidate(design.mask).sum(-1)
+    return j_criterion(x_k, w_k, u_tilde.unsqueeze(-3), lam, num_samples=n_k)
+
+
+class PolicyStack(ActionProbsPolicy):
+    """K policies side by side over one batched environment, rows laid out as ``[..., K, M]``.
+
+    Row ``e`` of an environment batch of size ``R·K·M`` follows ``policies[(e // M) % K]``.
+    Used to collect every candidate's reward-free episodes in a single batched rollout.
+
+    Args:
+        policies: K policies with ``action_probs``.
+        episodes_per_policy: M, consecutive rows per policy.
+        generator: random stream for sampling.
+    """
+
+    def __init__(self, policies: Sequence, *, episodes_per_policy: int, generator=None, **io):
+        if not policies:
+            raise ValueError("policies must not be empty")
+        super().__init__(num_actions=policies[0].num_actions, generator=generator, **io)
+        self.policies = list(policies)
+        self.episodes_per_policy = int(episodes_per_policy)
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        rows = obs.shape[0]
+        block = len(self.policies) * self.episodes_per_policy
+        if rows % block:
+            raise ValueError(f"a batch of {rows} rows is not a multiple of K·M = {block}")
+        grid = obs.reshape(
+            rows // block, len(self.policies), self.episodes_per_policy, *obs.shape[1:]
+        )
+        probs = [p.action_probs(grid[:, k]) for k, p in enumerate(self.policies)]
+        return torch.stack(probs, 1).reshape(rows, *probs[0].shape[2:])
+
+
+@dataclass
+class Selection:
+    """What :class:`SamplingPolicySelector` decided.
+
+    Attributes:
+        index: the chosen candidate ``argmin_k J'_k``.
+        j_mean: J' ``[K]``, the mean over repeats.
+        j_all: J ``[Z, K]``, every repeat.
+        reward_free_transitions: reward-free transitions collected for the decision.
+        episodes: the reward-free episodes collected ``[Z, K, M, N]``.
+    """
+
+    index: int
+    j_mean: torch.Tensor
+    j_all: torch.Tensor
+    reward_free_transitions: int
+    episodes: TensorDictBase
+
+
+class SamplingPolicySelector:
+    """Algorithm 2 of the paper as a TorchRL component: choose the sampling policy by J'.
+
+    For Z repeats it collects ``M`` reward-free episodes of ``N`` steps for each of the K
+    candidates (one batched rollout when the environment's batch size is ``Z·K·M``), computes
+    J for all candidates and repeats in one batched call (:func:`j_values`) and returns the
+    candidate with the smallest mean J'. No reward is read: the collected episodes drop it.
+
+    Args:
+        env: a TorchRL env with discrete actions used for reward-free rollouts, or a callable
+            ``batch_size -> env``. An env whose batch size is ``Z·K·M`` is rolled out once;
+            any other is rolled out candidate by candidate.
+        psi: the psi_hat module (basis, γ, grouping).
+        num_episodes: M, reward-free episodes per candidate and repeat.
+        num_steps: N.
+        num_repeats: Z (J' is the mean of Z values of J).
+        lam: λ.
+        generator: random stream of the sampling (default: the candidates' own).
+
+    Example:
+        >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
+        >>> from torch_api.basis import GaussianActionBasis
+        >>> from torch_api.policies import LinearQPolicy
+        >>> basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU,
+        ...                             num_actions=2)
+        >>> psi = PsiHat(basis=basis, gamma=0.9, mode="grouped")
+        >>> pi = LinearQPolicy(basis=basis, theta=torch.ones(12), epsilon=0.15)
+        >>> selector = SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e, seed=0),
+        ...                                   psi=psi, num_episodes=3, num_steps=10)
+        >>> choice = selector.select(pi, [pi.with_rule(epsilon=e) for e in (0.15, 0.65)])
+        >>> choice.j_mean.shape
+        torch.Size([2])
+    """
+
+    def __init__(
+        self,
+        *,
+        env: EnvBase | Callable[[int], EnvBase],
+        psi: PsiHat,
+        num_episodes: int,
+        num_steps: int,
+        num_repeats: int = 5,
+        lam: float = DEFAULT_LAMBDA,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        for name, value in (
+            ("num_episodes", num_episodes),
+            ("num_steps", num_steps),
+            ("num_repeats", num_repeats),
+        ):
+            if value < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        if not lam > 0:
+            raise ValueError(f"lam must be > 0, got {lam}")
+        self._env = env
+        self._envs: dict[int, EnvBase] = {}
+        self.psi = psi
+        self.num_episodes = int(num_episodes)
+        self.num_steps = int(num_steps)
+        self.num_repeats = int(num_repeats)
+        self.lam = float(lam)
+        self.generator = generator
+
+    def _env_for(self, batch: int) -> EnvBase:
+        if isinstance(self._env, EnvBase):
+            return self._env
+        if batch not in self._envs:
+            self._envs[batch] = self._env(batch)
+        return self._envs[batch]
+
+    def collect(self, candidates: Sequence, iteration: int = 0) -> TensorDictBase:
+        """Reward-free episodes of every candidate and repeat, ``[Z, K, M, N]``."""
+        z, k, m = self.num_repeats, len(candidates), self.num_episodes
+        env = self._env_for(z * k * m)
+        generator = self.generator or candidates[0].generator
+        if len(env.batch_size) == 1 and env.batch_size[0] == z * k * m:
+            stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
+            episodes = collect_episodes(
+                env,
+                stack,
+                num_episodes=z * k * m,
+                num_steps=self.num_steps,
+                rewarded=False,
+                iteration=iteration,
+            )
+            episodes = episodes.reshape(z, k, m, self.num_steps)
+            episodes["policy_id"] = (
+                torch.arange(k).reshape(1, k, 1, 1).expand(episodes.shape).clone()
+            )
+            return episodes
+        per_repeat = []
+        for _ in range(z):
+            per_repeat.append(
+                torch.stack(
+                    [
+                        collect_episodes(
+                            env,
+                            cand,
+                            num_episodes=m,
+                            num_steps=self.num_steps,
+                            rewarded=False,
+                            iteration=iteration,
+                            policy_id=i,
+                        )
+                        for i, cand in enumerate(candidates)
+                    ]
+                )
+            )
+        return torch.stack(per_repeat)
+
+    def select(
+        self,
+        evaluation_policy,
+        candidates: Sequence,
+        earlier_episodes: TensorDictBase | None = None,
+        iteration: int = 0,
+    ) -> Selection:
+        """Run Algorithm 2 and return the chosen candidate with every J value.
+
+        Args:
+            evaluation_policy: pi_l (``action_probs``).
+            candidates: the K sampling-policy candidates (TensorDict modules writing
+                ``action`` and ``sample_probs``).
+            earlier_episodes: the earlier sampling sets ``[M', N]`` (their rewards are not read).
+            iteration: tag stored with the collected episodes.
+        """
+        if not candidates:
+            raise ValueError("candidates must not be empty")
+        episodes = self.collect(candidates, iteration)
+        j_all = j_values(episodes, earlier_episodes, evaluation_policy, self.psi, self.lam)
+        j_mean = j_all.mean(0)
+        return Selection(
+            index=int(torch.argmin(j_mean)),
+            j_mean=j_mean,
+            j_all=j_all,
+            reward_free_transitions=int(episodes["mask"].sum()),
+            episodes=episodes,
+        )
