@@ -97,7 +97,7 @@ def collect_episodes(
     num_steps: int,
     rewarded: bool,
     iteration: int = 0,
-    policy_id: int = 0,
+    policy_id: int | torch.Tensor = 0,
 ) -> TensorDict:
     """Collect ``num_episodes`` episodes of ``num_steps`` steps with ``policy`` on ``env``.
 
@@ -106,29 +106,41 @@ def collect_episodes(
     unbatched environment (``batch_size == []``) is rolled out once per episode. Each row is one
     episode: steps after an episode ends are kept but masked out.
 
+    A policy with per-trial parameters (``policy.param_dims == (T,)``, e.g. θ ``[T, B]``)
+    collects M episodes for each trial in one rollout: the environment must then have batch
+    size ``[T·M]``, rows laid out trial-major, and the result has shape ``[T, M, N]``.
+
     Args:
         env: a TorchRL environment with a discrete action space (categorical or one-hot).
         policy: a TensorDict module writing ``action`` and ``sample_probs`` (e.g.
             :class:`~torch_api.policies.LinearQPolicy`).
-        num_episodes: M ≥ 1.
+        num_episodes: M ≥ 1 (per trial).
         num_steps: N ≥ 1.
         rewarded: keep ``("next", "reward")``. With False the reward is dropped on collection
             (reward-free data: nothing downstream can read it).
-        iteration, policy_id: tags stored with every step.
+        iteration, policy_id: tags stored with every step (``policy_id`` may be a ``[*T]``
+            tensor: one id per trial).
 
     Returns:
-        TensorDict ``[M, N]`` in the format of this module's docstring.
+        TensorDict ``[*T, M, N]`` in the format of this module's docstring.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-    batched = len(env.batch_size) > 0
     if len(env.batch_size) > 1:
         raise ValueError(f"env must have a batch size [E] or [], got {tuple(env.batch_size)}")
+    trial_dims = tuple(getattr(policy, "param_dims", ()))
+    rows = math.prod(trial_dims) * num_episodes
+    batched = len(env.batch_size) > 0
+    if trial_dims and (not batched or env.batch_size[0] != rows):
+        raise ValueError(
+            f"a policy with per-trial parameters {trial_dims} needs an env of batch size "
+            f"[T·M] = [{rows}], got {tuple(env.batch_size)}"
+        )
     per_rollout = env.batch_size[0] if batched else 1
     chunks = []
-    for _ in range(math.ceil(num_episodes / per_rollout)):
+    for _ in range(math.ceil(rows / per_rollout)):
         rollout = env.rollout(
             max_steps=num_steps, policy=policy, break_when_any_done=False, auto_reset=True
         )
@@ -139,9 +151,11 @@ def collect_episodes(
                 f"env.rollout returned {rollout.shape[-1]} steps instead of {num_steps}"
             )
         chunks.append(_episodes_from_rollout(rollout, rewarded=rewarded))
-    episodes = torch.cat(chunks, 0)[:num_episodes] if len(chunks) > 1 else chunks[0][:num_episodes]
+    episodes = torch.cat(chunks, 0)[:rows] if len(chunks) > 1 else chunks[0][:rows]
+    episodes = episodes.reshape(*trial_dims, num_episodes, num_steps)
     episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
-    episodes["policy_id"] = torch.full(episodes.shape, policy_id, dtype=torch.long)
+    ids = torch.as_tensor(policy_id, dtype=torch.long)
+    episodes["policy_id"] = ids.reshape(*ids.shape, 1, 1).expand(episodes.shape).clone()
     validate_episodes(episodes, rewarded=rewarded)
     return episodes
 
@@ -212,10 +226,13 @@ class EpisodeBuffer:
     missing a key): ``rewarded=True`` holds bought episodes with their rewards,
     ``rewarded=False`` reward-free ones and refuses any reward.
 
+    Episodes of T trials run side by side are held as ``[T, M, N]``: one storage item is the
+    ``[T, N]`` slice of one episode index, so the trials stay aligned.
+
     Args:
         rewarded: whether the stored episodes carry ``("next", "reward")``.
-        capacity: most episodes held; extending past it is an error (episodes are never
-            overwritten: a bought reward must not be lost).
+        capacity: most episodes held (per trial); extending past it is an error (episodes are
+            never overwritten: a bought reward must not be lost).
         device: storage device.
 
     Example:
@@ -235,6 +252,7 @@ class EpisodeBuffer:
             batch_size=1,
         )
         self._steps: int | None = None
+        self._trial_dims: tuple[int, ...] | None = None
 
     def __len__(self) -> int:
         return len(self._buffer)
@@ -245,35 +263,41 @@ class EpisodeBuffer:
         return int(self.episodes()["mask"].sum()) if len(self) else 0
 
     def extend(self, episodes: TensorDictBase) -> None:
-        """Append episodes ``[M, N]`` (validated first; same N as those already held)."""
+        """Append episodes ``[*T, M, N]`` (validated first; same T and N as those held)."""
         validate_episodes(episodes, rewarded=self.rewarded)
-        if episodes.batch_dims != 2:
-            raise ValueError(f"extend takes episodes of shape [M, N], got {tuple(episodes.shape)}")
-        if self._steps is not None and episodes.shape[1] != self._steps:
+        trial_dims, (num_new, steps) = tuple(episodes.shape[:-2]), episodes.shape[-2:]
+        if self._steps is not None and steps != self._steps:
             raise ValueError(
-                f"this buffer holds episodes of N = {self._steps} steps, "
-                f"got N = {episodes.shape[1]}"
+                f"this buffer holds episodes of N = {self._steps} steps, got N = {steps}"
             )
-        if len(self) + episodes.shape[0] > self.capacity:
+        if self._trial_dims is not None and trial_dims != self._trial_dims:
+            raise ValueError(
+                f"this buffer holds episodes of trials {self._trial_dims}, got {trial_dims}"
+            )
+        if len(self) + num_new > self.capacity:
             raise ValueError(
                 f"buffer capacity {self.capacity} episodes would be exceeded "
-                f"({len(self)} held + {episodes.shape[0]} new)"
+                f"({len(self)} held + {num_new} new)"
             )
         if len(self):
-            held = set(self.episodes()[:1].keys(include_nested=True, leaves_only=True))
+            held = set(self.episodes().keys(include_nested=True, leaves_only=True))
             new = set(episodes.keys(include_nested=True, leaves_only=True))
             if held != new:
                 raise ValueError(
                     f"episode keys differ from those held: {sorted(map(str, held ^ new))}"
                 )
-        self._buffer.extend(episodes.copy())  # the buffer writes an "index" key into its input
-        self._steps = episodes.shape[1]
+        items = episodes.permute(-2, *range(len(trial_dims)), -1) if trial_dims else episodes
+        self._buffer.extend(items.contiguous())  # (the buffer writes an "index" key into its input)
+        self._steps, self._trial_dims = steps, trial_dims
 
     def episodes(self) -> TensorDictBase:
-        """All episodes held, in insertion order, ``[M_total, N]``."""
+        """All episodes held, in insertion order, ``[*T, M_total, N]``."""
         if not len(self):
             raise ValueError("the buffer is empty")
-        return self._buffer.storage[: len(self)].exclude("index")
+        items = self._buffer.storage[: len(self)].exclude("index")
+        if self._trial_dims:
+            items = items.permute(*range(1, len(self._trial_dims) + 1), 0, -1).contiguous()
+        return items
 
     def state_dict(self) -> dict:
         return {"episodes": self.episodes().to_dict() if len(self) else None}

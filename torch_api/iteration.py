@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -41,21 +42,22 @@ class IterationRecord:
     Attributes:
         iteration: l.
         chosen: index of the sampling-policy candidate used (0 = the evaluation policy itself;
-            always 0 in passive mode).
-        sampling_rule: ε (or β) of the sampling policy used.
-        j_mean: J' of every candidate (active mode), else None.
-        j_all: J of every repeat and candidate ``[Z][K]`` (active mode), else None.
-        episodes_bought: rewarded episodes collected in this iteration.
-        rewarded_transitions: rewarded transitions bought so far (cumulative).
-        reward_free_transitions: reward-free transitions collected so far (cumulative).
+            always 0 in passive mode); a list over trials when run with ``num_trials``.
+        sampling_rule: ε (or β) of the sampling policy used (per trial with ``num_trials``).
+        j_mean: J' of every candidate ``[*T][K]`` (active mode), else None.
+        j_all: J of every repeat and candidate ``[*T][Z][K]`` (active mode), else None.
+        episodes_bought: rewarded episodes collected in this iteration (per trial).
+        rewarded_transitions: rewarded transitions bought so far (cumulative, per trial).
+        reward_free_transitions: reward-free transitions collected so far (cumulative, per
+            trial).
         performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
         seconds: wall time of the iteration (evaluation callback excluded).
-        theta: θ_l.
+        theta: θ_l ``[*T][B]``.
     """
 
     iteration: int
-    chosen: int
-    sampling_rule: float
+    chosen: int | list
+    sampling_rule: float | list
     j_mean: list | None
     j_all: list | None
     episodes_bought: int
@@ -81,8 +83,12 @@ class ActivePolicyIteration:
     Works with any TorchRL environment with discrete actions (categorical or one-hot) and any
     basis module with ``phi``/``phi_all``/``num_features``/``num_actions``.
 
+    With ``num_trials = T`` it runs T independent trials as one batched computation: θ
+    ``[T, B]``, episodes ``[T, M, N]``, J ``[T, Z, K]``, one candidate chosen per trial.
+
     Args:
-        env: the environment whose rewards are bought (a TorchRL ``EnvBase``).
+        env: the environment whose rewards are bought: a TorchRL ``EnvBase``, or a callable
+            ``batch_size -> env`` (required with ``num_trials``: batches of ``T·M_l``).
         basis: the basis module (e.g. :class:`~torch_api.basis.GaussianActionBasis`).
         schedule: episodes bought per iteration ``(M_1, …, M_L)``, each ≥ 1.
         num_steps: N, steps per episode.
@@ -101,6 +107,7 @@ class ActivePolicyIteration:
             ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
         beta: softmax temperature.
         evaluate: optional callback ``policy -> dict`` measuring pi_{l+1} after every iteration.
+        num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
         seed: seed of the policies' random stream (environments carry their own seeds).
 
     Example:
@@ -120,7 +127,7 @@ class ActivePolicyIteration:
     def __init__(
         self,
         *,
-        env: EnvBase,
+        env: EnvBase | Callable[[int], EnvBase],
         basis: nn.Module,
         schedule: Sequence[int],
         num_steps: int,
@@ -137,6 +144,7 @@ class ActivePolicyIteration:
         improvement: str = "epsilon_greedy",
         beta: float | None = None,
         evaluate: Callable[[LinearQPolicy], dict] | None = None,
+        num_trials: int | None = None,
         seed: int = 0,
     ) -> None:
         if mode not in MODES:
@@ -160,7 +168,14 @@ class ActivePolicyIteration:
             raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
         if not candidate_offsets:
             raise ValueError("candidate_offsets must not be empty")
+        if num_trials is not None and num_trials < 1:
+            raise ValueError(f"num_trials must be >= 1, got {num_trials}")
+        if num_trials is not None and isinstance(env, EnvBase):
+            raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
+        self._envs: dict[int, EnvBase] = {}
+        self.num_trials = num_trials
+        self.trial_dims = () if num_trials is None else (int(num_trials),)
         self.basis = basis
         self.schedule = schedule
         self.num_steps = int(num_steps)
@@ -178,9 +193,9 @@ class ActivePolicyIteration:
         theta = torch.ones(basis.num_features, dtype=torch.float64)
         if initial_theta is not None:
             theta = torch.as_tensor(initial_theta, dtype=torch.float64)
-        self.theta = theta
+        self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.iteration = 0  # iterations completed
-        self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))
+        self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))  # per trial
         self.reward_free = EpisodeBuffer(
             rewarded=False,
             capacity=self.num_repeats * len(self.candidate_offsets) * sum(schedule),
@@ -188,7 +203,7 @@ class ActivePolicyIteration:
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
         self.selector = SamplingPolicySelector(
-            env=reward_free_env if reward_free_env is not None else env,
+            env=reward_free_env if reward_free_env is not None else self._env_for,
             psi=self.psi,
             num_episodes=1,  # set per iteration (M_l)
             num_steps=self.num_steps,
@@ -200,8 +215,16 @@ class ActivePolicyIteration:
 
     @property
     def rewarded_transitions(self) -> int:
-        """Rewarded transitions bought so far."""
-        return self.rewarded.num_transitions if len(self.rewarded) else 0
+        """Rewarded transitions bought so far (per trial)."""
+        trials = math.prod(self.trial_dims)
+        return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
+
+    def _env_for(self, batch: int) -> EnvBase:
+        if isinstance(self.env, EnvBase):
+            return self.env
+        if batch not in self._envs:
+            self._envs[batch] = self.env(batch)
+        return self._envs[batch]
 
     def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
         """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""
@@ -211,13 +234,20 @@ class ActivePolicyIteration:
             rule = {"epsilon": self.epsilon_schedule(iteration)}
         return LinearQPolicy(basis=self.basis, theta=theta, generator=self.generator, **rule)
 
+    def _candidate_rules(self) -> torch.Tensor:
+        """ε (or β) of the K candidates of the coming iteration (eq. 59); the first is pi_l's."""
+        if self.improvement == "softmax":
+            return torch.tensor([self.beta * c for c in SOFTMAX_CANDIDATE_SCALES])
+        eps = self.epsilon_schedule(self.iteration + 1)
+        return torch.tensor(candidate_epsilons(eps, self.candidate_offsets), dtype=torch.float64)
+
+    def _with_rule(self, rule: torch.Tensor) -> LinearQPolicy:
+        key = "beta" if self.improvement == "softmax" else "epsilon"
+        return self.policy.with_rule(**{key: rule})
+
     def candidates(self) -> list[LinearQPolicy]:
         """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
-        l_next = self.iteration + 1
-        if self.improvement == "softmax":
-            return [self.policy.with_rule(beta=self.beta * s) for s in SOFTMAX_CANDIDATE_SCALES]
-        eps = candidate_epsilons(self.epsilon_schedule(l_next), self.candidate_offsets)
-        return [self.policy.with_rule(epsilon=e) for e in eps]
+        return [self._with_rule(rule) for rule in self._candidate_rules()]
 
     def step(self) -> IterationRecord:
         """Run one iteration of Algorithm 1 and return its record."""
@@ -226,19 +256,23 @@ class ActivePolicyIteration:
         started = time.perf_counter()
         l_now = self.iteration + 1
         num_episodes = self.schedule[self.iteration]
-        candidates = self.candidates()
-        chosen, j_mean, j_all = 0, None, None
+        rules = self._candidate_rules()
+        chosen = torch.zeros(self.trial_dims, dtype=torch.long)
+        j_mean = j_all = None
         if self.mode == "active":
             self.selector.num_episodes = num_episodes
             earlier = self.rewarded.episodes() if len(self.rewarded) else None
-            selection = self.selector.select(self.policy, candidates, earlier, iteration=l_now)
+            selection = self.selector.select(
+                self.policy, self.candidates(), earlier, iteration=l_now
+            )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
             self._reward_free_transitions += selection.reward_free_transitions
-            self.reward_free.extend(selection.episodes.reshape(-1, self.num_steps))
-        sampling = candidates[chosen]
+            free = selection.episodes
+            self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
+        sampling = self._with_rule(rules[chosen])  # one candidate per trial
         bought = collect_episodes(
-            self.env,
+            self._env_for(math.prod(self.trial_dims) * num_episodes),
             sampling,
             num_episodes=num_episodes,
             num_steps=self.num_steps,
@@ -258,15 +292,13 @@ class ActivePolicyIteration:
         performance = self.evaluate(self.policy) if self.evaluate is not None else None
         record = IterationRecord(
             iteration=l_now,
-            chosen=chosen,
-            sampling_rule=float(
-                sampling.beta if self.improvement == "softmax" else sampling.epsilon
-            ),
+            chosen=chosen.tolist(),
+            sampling_rule=rules[chosen].tolist(),
             j_mean=j_mean,
             j_all=j_all,
             episodes_bought=num_episodes,
             rewarded_transitions=self.rewarded_transitions,
-            reward_free_transitions=self._reward_free_transitions,
+            reward_free_transitions=self._reward_free_transitions // math.prod(self.trial_dims),
             performance=performance,
             seconds=seconds,
             theta=self.theta.tolist(),

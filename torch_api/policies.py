@@ -7,6 +7,8 @@ so that importance weights can be computed later against any other policy.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -82,11 +84,13 @@ def epsilon_greedy_probs(q: torch.Tensor, epsilon) -> torch.Tensor:
     return (1.0 - eps) * greedy + eps / num_actions
 
 
-def softmax_probs(q: torch.Tensor, beta: float) -> torch.Tensor:
+def softmax_probs(q: torch.Tensor, beta) -> torch.Tensor:
     """Softmax probabilities ``pi(a|s) ∝ exp(Q̂(s, a) / β)`` (eq. 7): ``[..., A] -> [..., A]``."""
-    if not beta > 0:
+    beta_t = torch.as_tensor(beta, dtype=torch.float64, device=q.device)
+    if not torch.isfinite(beta_t).all() or (beta_t <= 0).any():
         raise ValueError(f"beta must be > 0, got {beta}")
-    return torch.softmax(q.to(torch.float64) / beta, dim=-1)
+    beta_t = beta_t.unsqueeze(-1) if beta_t.ndim else beta_t
+    return torch.softmax(q.to(torch.float64) / beta_t, dim=-1)
 
 
 class ActionProbsPolicy(TensorDictModuleBase):
@@ -126,9 +130,33 @@ class ActionProbsPolicy(TensorDictModuleBase):
             "probs_key": self.probs_key,
         }
 
-    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
-        """``pi(·|s)``: obs ``[..., d]`` -> ``[..., A]`` in float64."""
+    @property
+    def param_dims(self) -> tuple[int, ...]:
+        """Leading dims ``*T`` of the policy's parameters (e.g. ``(T,)`` for one θ per trial)."""
+        return ()
+
+    def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        """``pi(·|s)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64.
+
+        With per-trial parameters ``[T, ...]``, an environment batch laid out trial-major,
+        obs ``[T·R, d]``, is accepted too: row ``e`` belongs to trial ``e // R``.
+        """
+        lead = self.param_dims
+        if not lead or obs.shape[: len(lead)] == lead:
+            return self._action_probs(obs)
+        trials = math.prod(lead)
+        if obs.ndim < 2 or obs.shape[0] % trials:
+            raise ValueError(
+                f"the policy holds parameters for trials {tuple(lead)}; observations must have "
+                f"leading dims {tuple(lead)} or a first dim divisible by {trials}, "
+                f"got {tuple(obs.shape)}"
+            )
+        grid = obs.reshape(*lead, obs.shape[0] // trials, *obs.shape[1:])
+        probs = self._action_probs(grid)
+        return probs.reshape(*obs.shape[:-1], probs.shape[-1])
 
     def sample(self, probs: torch.Tensor) -> torch.Tensor:
         """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator."""
@@ -178,7 +206,11 @@ class TabularPolicy(ActionProbsPolicy):
         self.register_buffer("table", table)
         self.state_index = state_index
 
-    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+    @property
+    def param_dims(self) -> tuple[int, ...]:
+        return tuple(self.table.shape[:-2])
+
+    def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
         index = self.state_index(obs).long()
         lead = self.table.shape[:-2]
         if index.shape[: len(lead)] != lead:
@@ -221,8 +253,10 @@ class LinearQPolicy(ActionProbsPolicy):
     Args:
         basis: module with ``phi_all(obs [..., d]) -> [..., A, B]`` and ``num_features``.
         theta: ``[B]`` or ``[*T, B]`` (a leading trial dimension prefixing the observation dims).
-        epsilon: ε of the ε-greedy rule (0 is greedy). Exclusive with ``beta``.
-        beta: temperature of the softmax rule (eq. 7). Exclusive with ``epsilon``.
+        epsilon: ε of the ε-greedy rule (0 is greedy), a number or a ``[*T]`` tensor (one per
+            trial). Exclusive with ``beta``.
+        beta: temperature of the softmax rule (eq. 7), a number or ``[*T]``. Exclusive with
+            ``epsilon``.
         one_hot: write one-hot actions (for envs with a ``OneHot`` action spec).
         generator: random stream for sampling (default: a fresh CPU generator seeded 0).
         observation_key, action_key, probs_key: tensordict keys.
@@ -244,7 +278,7 @@ class LinearQPolicy(ActionProbsPolicy):
         basis: nn.Module,
         theta: torch.Tensor,
         epsilon: float | torch.Tensor | None = None,
-        beta: float | None = None,
+        beta: float | torch.Tensor | None = None,
         one_hot: bool = False,
         generator: torch.Generator | None = None,
         observation_key="observation",
@@ -266,8 +300,10 @@ class LinearQPolicy(ActionProbsPolicy):
             raise ValueError("theta contains NaN or inf")
         if epsilon is not None:
             epsilon = _check_epsilon(epsilon)
-        if beta is not None and not beta > 0:
-            raise ValueError(f"beta must be > 0, got {beta}")
+        if beta is not None:
+            beta = torch.as_tensor(beta, dtype=torch.float64)
+            if not torch.isfinite(beta).all() or (beta <= 0).any():
+                raise ValueError(f"beta must be > 0, got {beta}")
         super().__init__(
             num_actions=basis.num_actions,
             one_hot=one_hot,
@@ -285,18 +321,24 @@ class LinearQPolicy(ActionProbsPolicy):
         """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
         return linear_q_values(self.basis.phi_all(obs.to(torch.float64)), self.theta)
 
-    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
-        """``pi(·|s)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
+    @property
+    def param_dims(self) -> tuple[int, ...]:
+        return tuple(self.theta.shape[:-1])
+
+    def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
         q = self.q_values(obs)
+        rule = self.beta if self.beta is not None else self.epsilon
+        if rule.ndim:  # per-trial ε or β [*T]: align with the observation dims
+            rule = rule.reshape(*rule.shape, *([1] * (q.ndim - 1 - rule.ndim)))
         if self.beta is not None:
-            return softmax_probs(q, self.beta)
-        eps = self.epsilon
-        if eps.ndim:  # per-trial ε [*T]: align with the observation dims
-            eps = eps.reshape(*eps.shape, *([1] * (q.ndim - 1 - eps.ndim)))
-        return epsilon_greedy_probs(q, eps)
+            return softmax_probs(q, rule)
+        return epsilon_greedy_probs(q, rule)
 
     def with_rule(
-        self, *, epsilon: float | torch.Tensor | None = None, beta: float | None = None
+        self,
+        *,
+        epsilon: float | torch.Tensor | None = None,
+        beta: float | torch.Tensor | None = None,
     ) -> LinearQPolicy:
         """The same θ and basis under another rule (e.g. the candidates of eq. 59)."""
         return LinearQPolicy(

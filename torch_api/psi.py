@@ -40,6 +40,21 @@ def expected_next_features(next_phi_all: torch.Tensor, next_probs: torch.Tensor)
     return (next_probs.unsqueeze(-1).to(next_phi_all.dtype) * next_phi_all).sum(-2)
 
 
+def _dense_ids(columns: torch.Tensor) -> torch.Tensor:
+    """Ids ``[n]`` equal iff two rows of ``columns [n, c]`` are bit-identical.
+
+    Combines the columns one at a time with 1-D ``torch.unique`` (sort-based), much faster
+    than ``torch.unique(dim=0)``; ids stay below n² so int64 never overflows.
+    """
+    ids = torch.zeros(columns.shape[0], dtype=torch.long, device=columns.device)
+    for col in columns.unbind(-1):
+        _, col_ids = torch.unique(col, return_inverse=True)
+        _, ids = torch.unique(
+            ids * (int(col_ids.max()) + 1 if col_ids.numel() else 1) + col_ids, return_inverse=True
+        )
+    return ids
+
+
 def state_action_groups(
     obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -57,20 +72,18 @@ def state_action_groups(
         raise ValueError(
             f"action must have shape {tuple(obs.shape[:-1])}, got {tuple(action.shape)}"
         )
-    lead_n = obs.shape[:-1]
-    flat_obs = obs.reshape(-1, obs.shape[-1]).to(torch.float64)
+    flat_obs = obs.reshape(-1, obs.shape[-1])
+    rows = flat_obs.shape[0]
     n = obs.shape[-2] if obs.ndim >= 2 else 1
-    item = torch.arange(flat_obs.shape[0], device=obs.device) // max(n, 1)
-    key = torch.cat(
-        [item.unsqueeze(-1).to(torch.float64), action.reshape(-1, 1).to(torch.float64), flat_obs],
-        dim=-1,
-    )
+    item = torch.arange(rows, device=obs.device) // max(n, 1)
+    # Compare observations bit for bit (as integers), so that -0.0 and 0.0 or NaNs never merge.
+    bits = flat_obs.to(torch.float64).view(torch.int64)
+    columns = [item, action.reshape(-1).long(), *bits.unbind(-1)]
     if mask is not None:
         # A masked row keys on its own position, so it never joins a real group.
-        own = torch.arange(flat_obs.shape[0], device=obs.device, dtype=torch.float64)
-        key = torch.cat([key, torch.where(mask.reshape(-1), -1.0, own).unsqueeze(-1)], dim=-1)
-    _, inverse = torch.unique(key, dim=0, return_inverse=True)
-    return inverse.reshape(lead_n)
+        own = torch.arange(rows, device=obs.device)
+        columns.append(torch.where(mask.reshape(-1), -1, own))
+    return _dense_ids(torch.stack(columns, -1)).reshape(obs.shape[:-1])
 
 
 def _group_mean(values: torch.Tensor, groups: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -83,6 +84,11 @@ def j_values(
                 f"N = {num_steps}"
             )
         prev = earlier_episodes.select(*pool.keys(include_nested=True, leaves_only=True))
+        # earlier sets [*T, M', N] are shared by every repeat: broadcast over the other dims
+        own_lead = prev.batch_dims - 2
+        prev = prev.reshape(
+            *prev.shape[:own_lead], *([1] * (len(lead) - own_lead)), *prev.shape[-2:]
+        )
         prev = prev.expand(*lead, *prev.shape[-2:]).clone()
         pool = torch.cat([pool, prev], dim=-2)
     design = build_design(pool, policy, psi)
@@ -141,17 +147,18 @@ class PolicyStack(ActionProbsPolicy):
 
 @dataclass
 class Selection:
-    """What :class:`SamplingPolicySelector` decided.
+    """What :class:`SamplingPolicySelector` decided (``*T``: the policies' trial dims, if any).
 
     Attributes:
-        index: the chosen candidate ``argmin_k J'_k``.
-        j_mean: J' ``[K]``, the mean over repeats.
-        j_all: J ``[Z, K]``, every repeat.
-        reward_free_transitions: reward-free transitions collected for the decision.
-        episodes: the reward-free episodes collected ``[Z, K, M, N]``.
+        index: the chosen candidate ``argmin_k J'_k``, long ``[*T]`` (a 0-d tensor without
+            trials; ``int(selection.index)`` works then).
+        j_mean: J' ``[*T, K]``, the mean over repeats.
+        j_all: J ``[*T, Z, K]``, every repeat.
+        reward_free_transitions: reward-free transitions collected for the decision (all trials).
+        episodes: the reward-free episodes collected ``[*T, Z, K, M, N]``.
     """
 
-    index: int
+    index: torch.Tensor
     j_mean: torch.Tensor
     j_all: torch.Tensor
     reward_free_transitions: int
@@ -229,44 +236,53 @@ class SamplingPolicySelector:
         return self._envs[batch]
 
     def collect(self, candidates: Sequence, iteration: int = 0) -> TensorDictBase:
-        """Reward-free episodes of every candidate and repeat, ``[Z, K, M, N]``."""
-        z, k, m = self.num_repeats, len(candidates), self.num_episodes
-        env = self._env_for(z * k * m)
+        """Reward-free episodes of every candidate and repeat, ``[*T, Z, K, M, N]``.
+
+        ``*T`` are the candidates' trial dims (``param_dims``): rows of the environment batch
+        are laid out ``(t, z, k, m)``.
+        """
+        trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
+        trials = math.prod(trial_dims)
+        z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
+        env = self._env_for(trials * z * k * m)
         generator = self.generator or candidates[0].generator
-        if len(env.batch_size) == 1 and env.batch_size[0] == z * k * m:
+        ids = torch.arange(k).reshape(k, 1, 1)
+        if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
             stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
             episodes = collect_episodes(
                 env,
                 stack,
-                num_episodes=z * k * m,
-                num_steps=self.num_steps,
+                num_episodes=trials * z * k * m,
+                num_steps=n,
                 rewarded=False,
                 iteration=iteration,
             )
-            episodes = episodes.reshape(z, k, m, self.num_steps)
-            episodes["policy_id"] = (
-                torch.arange(k).reshape(1, k, 1, 1).expand(episodes.shape).clone()
-            )
+            episodes = episodes.reshape(*trial_dims, z, k, m, n)
+            episodes["policy_id"] = ids.expand(episodes.shape).clone()
             return episodes
-        per_repeat = []
-        for _ in range(z):
-            per_repeat.append(
-                torch.stack(
-                    [
-                        collect_episodes(
-                            env,
-                            cand,
-                            num_episodes=m,
-                            num_steps=self.num_steps,
-                            rewarded=False,
-                            iteration=iteration,
-                            policy_id=i,
-                        )
-                        for i, cand in enumerate(candidates)
-                    ]
-                )
+        if trial_dims:
+            raise ValueError(
+                f"candidates with per-trial parameters {trial_dims} need a reward-free env of "
+                f"batch size T·Z·K·M = {trials * z * k * m} (pass a callable batch_size -> env)"
             )
-        return torch.stack(per_repeat)
+        repeats = [
+            torch.stack(
+                [
+                    collect_episodes(
+                        env,
+                        cand,
+                        num_episodes=m,
+                        num_steps=n,
+                        rewarded=False,
+                        iteration=iteration,
+                        policy_id=i,
+                    )
+                    for i, cand in enumerate(candidates)
+                ]
+            )
+            for _ in range(z)
+        ]
+        return torch.stack(repeats)
 
     def select(
         self,
@@ -288,9 +304,9 @@ class SamplingPolicySelector:
             raise ValueError("candidates must not be empty")
         episodes = self.collect(candidates, iteration)
         j_all = j_values(episodes, earlier_episodes, evaluation_policy, self.psi, self.lam)
-        j_mean = j_all.mean(0)
+        j_mean = j_all.mean(-2)
         return Selection(
-            index=int(torch.argmin(j_mean)),
+            index=torch.argmin(j_mean, dim=-1),
             j_mean=j_mean,
             j_all=j_all,
             reward_free_transitions=int(episodes["mask"].sum()),
