@@ -1,0 +1,124 @@
+"""Fidelity of the batting integration scheme (SPEC section 5, "Integration and fidelity").
+
+Runs all 2^10 = 1024 open-loop action sequences (N = 10, A = 2) without noise, once with the
+env's scheme (coarse RK4 swing, fine impact) and once with a uniform Euler step ``ref_factor``
+times finer than the scheme's fine step, and compares: hit/miss agreement, first-hit step
+agreement, carry error (mean, max, 95 % quantile) over sequences that hit in both, and the
+physics steps spent per episode. A uniform run at the scheme's own fine step is shown too.
+
+    python benchmarks/batting_fidelity.py --out results/batting_fidelity.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from envs.batting import ACTION_TORQUES, FINE_DT, MAX_STEPS, BattingSimulator
+
+
+@dataclass
+class Args:
+    """Command-line arguments."""
+
+    out: str = "results/batting_fidelity.json"  # where the JSON table goes
+    ref_factor: int = 4  # the reference step is fine_dt / ref_factor
+    nthread: int | None = None  # MuJoCo threads (None: all cores)
+    skip_uniform_fine: bool = False  # leave out the uniform run at the scheme's fine step
+
+
+def all_sequences(n_steps: int = MAX_STEPS) -> np.ndarray:
+    """Every open-loop action sequence, int [2^N, N], in binary order (row i = bits of i)."""
+    return np.array(list(itertools.product((0, 1), repeat=n_steps)), dtype=np.int64)
+
+
+def run_sequences(seqs: np.ndarray, **sim_kwargs) -> dict:
+    """Noiseless episodes of the given sequences: carry, first-hit step and physics steps."""
+    sim = BattingSimulator(num_envs=len(seqs), **sim_kwargs)
+    sim.reset()
+    torques = np.asarray(ACTION_TORQUES)
+    hit_step = np.full(len(seqs), -1)
+    start = time.perf_counter()
+    for t in range(seqs.shape[1]):
+        _, _, first_hit = sim.step(torques[seqs[:, t]])
+        hit_step[first_hit] = t
+    return {
+        "carry": sim.carry.copy(),
+        "hit": sim.hit.copy(),
+        "hit_step": hit_step,
+        "steps": sim.physics_steps.copy(),
+        "fine_steps": sim.fine_steps.copy(),
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def compare(run: dict, ref: dict) -> dict:
+    """Agreement and carry error of ``run`` against ``ref`` (both from :func:`run_sequences`)."""
+    both = run["hit"] & ref["hit"]
+    err = np.abs(run["carry"] - ref["carry"])[both]
+    return {
+        "hits": int(run["hit"].sum()),
+        "hit_agreement": int((run["hit"] == ref["hit"]).sum()),
+        "hit_step_agreement": int((run["hit_step"] == ref["hit_step"]).sum()),
+        "carry_err_mean": float(err.mean()),
+        "carry_err_p95": float(np.quantile(err, 0.95)),
+        "carry_err_max": float(err.max()),
+        "steps_per_episode": float(run["steps"].mean()),
+        "fine_steps_per_episode": float(run["fine_steps"].mean()),
+        "seconds": run["seconds"],
+    }
+
+
+def main(args: Args) -> dict:
+    seqs = all_sequences()
+    ref_dt = FINE_DT / args.ref_factor
+    runs = {"scheme (adaptive)": run_sequences(seqs, nthread=args.nthread)}
+    if not args.skip_uniform_fine:
+        runs[f"uniform {FINE_DT * 1e3:g} ms"] = run_sequences(
+            seqs, scheme="uniform", nthread=args.nthread
+        )
+    print(f"reference: uniform {ref_dt * 1e3:g} ms over {len(seqs)} sequences ...", flush=True)
+    ref = run_sequences(seqs, scheme="uniform", fine_dt=ref_dt, nthread=args.nthread)
+    rows = {name: compare(run, ref) for name, run in runs.items()}
+    rows[f"reference {ref_dt * 1e3:g} ms"] = compare(ref, ref)
+
+    header = (
+        f"{'run':<22}{'hits':>6}{'hit agree':>11}{'step agree':>12}{'err mean':>10}"
+        f"{'err p95':>9}{'err max':>9}{'steps/ep':>10}{'fine/ep':>9}{'s':>7}"
+    )
+    print(header)
+    for name, r in rows.items():
+        print(
+            f"{name:<22}{r['hits']:>6}{r['hit_agreement']:>7}/{len(seqs)}"
+            f"{r['hit_step_agreement']:>8}/{len(seqs)}{r['carry_err_mean']:>10.3f}"
+            f"{r['carry_err_p95']:>9.3f}{r['carry_err_max']:>9.3f}"
+            f"{r['steps_per_episode']:>10.1f}{r['fine_steps_per_episode']:>9.1f}"
+            f"{r['seconds']:>7.1f}"
+        )
+    print("carry errors in m, over sequences that hit in both runs")
+    result = {"args": asdict(args), "n_sequences": len(seqs), "rows": rows}
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"wrote {out}")
+    return result
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    defaults = Args()
+    parser.add_argument("--out", default=defaults.out)
+    parser.add_argument("--ref-factor", type=int, default=defaults.ref_factor)
+    parser.add_argument("--nthread", type=int, default=defaults.nthread)
+    parser.add_argument("--skip-uniform-fine", action="store_true")
+    return Args(**vars(parser.parse_args(argv)))
+
+
+if __name__ == "__main__":
+    main(parse_args())
