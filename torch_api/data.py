@@ -300,4 +300,15 @@ class EpisodeBuffer:
         return items
 
     def state_dict(self) -> dict:
-        return {"episodes": self.episodes().to_dict() if len(self) else None}
+        """Plain tensors and numbers only (loadable with ``torch.load(weights_only=True)``)."""
+        if not len(self):
+            return {"episodes": None, "batch_size": None}
+        episodes = self.episodes()
+        return {"episodes": episodes.to_dict(), "batch_size": list(episodes.shape)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace the contents with those of :meth:`state_dict` (validated like ``extend``)."""
+        self._buffer.empty()
+        self._steps = self._trial_dims = None
+        if state.get("episodes") is not None:
+            self.extend(TensorDict.from_dict(state["episodes"], batch_size=state["batch_size"]))

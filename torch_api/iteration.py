@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 from torchrl.envs import EnvBase
@@ -23,7 +27,10 @@ from torch_api.selector import (
 )
 from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
 
-__all__ = ["ActivePolicyIteration", "IterationRecord", "paper_epsilon"]
+__all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
+
+CHECKPOINT_FORMAT = 1  # version of the checkpoint layout written by ActivePolicyIteration.save
+_STREAMS = {"policy": 0, "reward_free_env": 1, "rewarded_env": 2, "evaluation": 3}
 
 MODES = ("active", "passive")
 IMPROVEMENTS = ("epsilon_greedy", "softmax")
@@ -33,6 +40,16 @@ SOFTMAX_CANDIDATE_SCALES = (1.0, 2.0, 5.0, 20.0)  # softmax candidates: β times
 def paper_epsilon(iteration: int) -> float:
     """ε of the evaluation policy of iteration l (1-based): ``0.15 / l`` (paper sections 4.2, 5)."""
     return 0.15 / iteration
+
+
+def derive_seed(seed: int, iteration: int, stream: str) -> int:
+    """Independent seed of one random stream of one iteration (NumPy ``SeedSequence``).
+
+    Every iteration re-seeds its streams from ``(seed, iteration, stream)``, so an interrupted
+    run resumed from a checkpoint draws exactly the numbers an uninterrupted run would have.
+    """
+    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), _STREAMS[stream]]
+    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
 @dataclass
@@ -106,9 +123,19 @@ class ActivePolicyIteration:
         improvement: ``"epsilon_greedy"`` (the paper) or ``"softmax"`` (eq. 7; pi_l uses
             ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
         beta: softmax temperature.
-        evaluate: optional callback ``policy -> dict`` measuring pi_{l+1} after every iteration.
+        evaluate: optional callback ``(policy, seed) -> dict`` measuring pi_{l+1} after every
+            iteration; ``seed`` is derived from (seed, l) so that a resumed run measures alike.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
-        seed: seed of the policies' random stream (environments carry their own seeds).
+        seed: seed of the run. Each iteration re-seeds the policies' stream and the
+            environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
+            the same seed in active and passive mode share the rewarded environments' streams
+            (a paired design).
+        keep_reward_free: store the selector's reward-free episodes in ``reward_free``.
+        checkpoint_path: if set, the whole state is saved there (atomically) right after each
+            batch of rewarded episodes is bought and after every iteration; resume with
+            :meth:`load` on an instance built with the same arguments.
+        device: where psi_hat, J and the solves run (e.g. ``"cuda"``); environments, rollouts
+            and the stored episodes stay on the environments' device. Default: CPU.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -143,9 +170,12 @@ class ActivePolicyIteration:
         candidate_offsets: Sequence[float] = PAPER_EPSILON_OFFSETS,
         improvement: str = "epsilon_greedy",
         beta: float | None = None,
-        evaluate: Callable[[LinearQPolicy], dict] | None = None,
+        evaluate: Callable[[LinearQPolicy, int], dict] | None = None,
         num_trials: int | None = None,
         seed: int = 0,
+        keep_reward_free: bool = True,
+        checkpoint_path: str | os.PathLike | None = None,
+        device: torch.device | str | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -188,8 +218,12 @@ class ActivePolicyIteration:
         self.improvement = improvement
         self.beta = beta
         self.evaluate = evaluate
+        self.seed = int(seed)
+        self.keep_reward_free = keep_reward_free
+        self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
+        self.device = torch.device("cpu") if device is None else torch.device(device)
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(self.seed)
         theta = torch.ones(basis.num_features, dtype=torch.float64)
         if initial_theta is not None:
             theta = torch.as_tensor(initial_theta, dtype=torch.float64)
@@ -202,6 +236,7 @@ class ActivePolicyIteration:
         )
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
+        self._pending: dict | None = None  # an iteration whose rewards are bought, θ not yet fit
         self.selector = SamplingPolicySelector(
             env=reward_free_env if reward_free_env is not None else self._env_for,
             psi=self.psi,
@@ -210,6 +245,7 @@ class ActivePolicyIteration:
             num_repeats=self.num_repeats,
             lam=self.lam,
             generator=self.generator,
+            device=self.device,
         )
         self.policy = self._policy(self.theta, 1)
 
@@ -249,13 +285,25 @@ class ActivePolicyIteration:
         """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
         return [self._with_rule(rule) for rule in self._candidate_rules()]
 
-    def step(self) -> IterationRecord:
-        """Run one iteration of Algorithm 1 and return its record."""
-        if self.iteration >= len(self.schedule):
-            raise RuntimeError(f"all {len(self.schedule)} iterations of the schedule are done")
+    def _seed_iteration(self, iteration: int, num_episodes: int) -> None:
+        """Re-seed the policies' stream and the environments of iteration l."""
+        trials = math.prod(self.trial_dims)
+        self.generator.manual_seed(derive_seed(self.seed, iteration, "policy"))
+        self._env_for(trials * num_episodes).set_seed(
+            derive_seed(self.seed, iteration, "rewarded_env")
+        )
+        if self.mode == "active":
+            batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
+            self.selector.env_for(batch).set_seed(
+                derive_seed(self.seed, iteration, "reward_free_env")
+            )
+
+    def _buy(self) -> None:
+        """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes."""
         started = time.perf_counter()
         l_now = self.iteration + 1
         num_episodes = self.schedule[self.iteration]
+        self._seed_iteration(l_now, num_episodes)
         rules = self._candidate_rules()
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
         j_mean = j_all = None
@@ -268,12 +316,12 @@ class ActivePolicyIteration:
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
             self._reward_free_transitions += selection.reward_free_transitions
-            free = selection.episodes
-            self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
-        sampling = self._with_rule(rules[chosen])  # one candidate per trial
+            if self.keep_reward_free:
+                free = selection.episodes
+                self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
         bought = collect_episodes(
             self._env_for(math.prod(self.trial_dims) * num_episodes),
-            sampling,
+            self._with_rule(rules[chosen]),  # one candidate per trial
             num_episodes=num_episodes,
             num_steps=self.num_steps,
             rewarded=True,
@@ -281,30 +329,140 @@ class ActivePolicyIteration:
             policy_id=chosen,
         )
         self.rewarded.extend(bought)
+        self._pending = {
+            "chosen": chosen,
+            "sampling_rule": rules[chosen],
+            "j_mean": j_mean,
+            "j_all": j_all,
+            "seconds": time.perf_counter() - started,
+        }
+        self._checkpoint()
+
+    def step(self) -> IterationRecord:
+        """Run one iteration of Algorithm 1 and return its record."""
+        if self.iteration >= len(self.schedule):
+            raise RuntimeError(f"all {len(self.schedule)} iterations of the schedule are done")
+        if self._pending is None:  # (after a resume, the rewards may be bought already)
+            self._buy()
+        started = time.perf_counter()
+        l_now = self.iteration + 1
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
-        design = build_design(self.rewarded.episodes(), self.policy, self.psi)
+        episodes = self.rewarded.episodes().to(self.device)
+        design = build_design(episodes, self.policy.to_device(self.device), self.psi)
         self.theta = weighted_ridge(
             design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-        )
-        self.iteration = l_now
+        ).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
-        seconds = time.perf_counter() - started
-        performance = self.evaluate(self.policy) if self.evaluate is not None else None
+        pending, self._pending = self._pending, None
+        seconds = pending["seconds"] + time.perf_counter() - started
+        performance = None
+        if self.evaluate is not None:
+            performance = self.evaluate(self.policy, derive_seed(self.seed, l_now, "evaluation"))
         record = IterationRecord(
             iteration=l_now,
-            chosen=chosen.tolist(),
-            sampling_rule=rules[chosen].tolist(),
-            j_mean=j_mean,
-            j_all=j_all,
-            episodes_bought=num_episodes,
+            chosen=pending["chosen"].tolist(),
+            sampling_rule=pending["sampling_rule"].tolist(),
+            j_mean=pending["j_mean"],
+            j_all=pending["j_all"],
+            episodes_bought=self.schedule[l_now - 1],
             rewarded_transitions=self.rewarded_transitions,
             reward_free_transitions=self._reward_free_transitions // math.prod(self.trial_dims),
             performance=performance,
             seconds=seconds,
             theta=self.theta.tolist(),
         )
+        self.iteration = l_now
         self.history.append(record)
+        self._checkpoint()
         return record
+
+    # -- durable state -----------------------------------------------------------------------
+
+    def _config(self) -> dict:
+        """What a checkpoint must agree on to be resumed by this instance."""
+        return {
+            "schedule": self.schedule,
+            "num_steps": self.num_steps,
+            "gamma": self.gamma,
+            "mode": self.mode,
+            "lam": self.lam,
+            "num_repeats": self.num_repeats,
+            "num_trials": self.num_trials,
+            "seed": self.seed,
+            "psi_mode": self.psi.mode,
+            "improvement": self.improvement,
+            "num_features": self.basis.num_features,
+        }
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue the run: plain tensors, numbers and strings only."""
+        pending = None
+        if self._pending is not None:
+            pending = dict(self._pending)
+            pending["j_mean"] = json.dumps(pending["j_mean"])
+            pending["j_all"] = json.dumps(pending["j_all"])
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "config": json.dumps(self._config()),
+            "iteration": self.iteration,
+            "theta": self.theta,
+            "rewarded": self.rewarded.state_dict(),
+            "reward_free": self.reward_free.state_dict(),
+            "reward_free_transitions": self._reward_free_transitions,
+            "history": json.dumps([asdict(r) for r in self.history]),
+            "pending": pending,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` output; refuses a checkpoint of another configuration."""
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(
+                f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT} "
+                "(written by another version of torch_api?)"
+            )
+        theirs = json.loads(state["config"])
+        if theirs != self._config():
+            differ = sorted(
+                k
+                for k in theirs.keys() | self._config().keys()
+                if theirs.get(k) != self._config().get(k)
+            )
+            raise ValueError(f"the checkpoint was written by a run with other settings: {differ}")
+        self.rewarded.load_state_dict(state["rewarded"])
+        self.reward_free.load_state_dict(state["reward_free"])
+        self.iteration = int(state["iteration"])
+        self.theta = state["theta"].to(torch.float64)
+        self._reward_free_transitions = int(state["reward_free_transitions"])
+        self.history = [IterationRecord(**r) for r in json.loads(state["history"])]
+        pending = state["pending"]
+        if pending is not None:
+            pending = dict(pending)
+            pending["j_mean"] = json.loads(pending["j_mean"])
+            pending["j_all"] = json.loads(pending["j_all"])
+        self._pending = pending
+        self.policy = self._policy(self.theta, self.iteration + 1)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write :meth:`state_dict` to ``path`` atomically (temporary file, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+
+    def load(self, path: str | os.PathLike) -> None:
+        """Resume from a checkpoint written by :meth:`save` (never executes code from it)."""
+        try:
+            state = torch.load(Path(path), weights_only=True)
+        except Exception as error:  # truncated, corrupted or holding pickled objects
+            raise ValueError(f"cannot read the checkpoint {path}: {error}") from error
+        self.load_state_dict(state)
+
+    def _checkpoint(self) -> None:
+        if self.checkpoint_path is not None:
+            self.save(self.checkpoint_path)
 
     def run(self, *, progress: bool = False) -> list[IterationRecord]:
         """Run the remaining iterations; returns the whole history."""

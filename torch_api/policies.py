@@ -334,6 +334,13 @@ class LinearQPolicy(ActionProbsPolicy):
             return softmax_probs(q, rule)
         return epsilon_greedy_probs(q, rule)
 
+    def to_device(self, device) -> LinearQPolicy:
+        """A copy whose θ lives on ``device`` (the sampling generator stays where it is)."""
+        rule = {"beta": self.beta} if self.beta is not None else {"epsilon": self.epsilon}
+        return LinearQPolicy(
+            basis=self.basis, theta=self.theta.to(device), **rule, **self._io_kwargs()
+        )
+
     def with_rule(
         self,
         *,

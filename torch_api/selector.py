@@ -183,6 +183,8 @@ class SamplingPolicySelector:
         num_repeats: Z (J' is the mean of Z values of J).
         lam: λ.
         generator: random stream of the sampling (default: the candidates' own).
+        device: where psi_hat and J are computed (default: where the episodes are); rollouts
+            stay on the environment's device.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -209,6 +211,7 @@ class SamplingPolicySelector:
         num_repeats: int = 5,
         lam: float = DEFAULT_LAMBDA,
         generator: torch.Generator | None = None,
+        device: torch.device | str | None = None,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -227,8 +230,10 @@ class SamplingPolicySelector:
         self.num_repeats = int(num_repeats)
         self.lam = float(lam)
         self.generator = generator
+        self.device = None if device is None else torch.device(device)
 
-    def _env_for(self, batch: int) -> EnvBase:
+    def env_for(self, batch: int) -> EnvBase:
+        """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
         if isinstance(self._env, EnvBase):
             return self._env
         if batch not in self._envs:
@@ -244,7 +249,7 @@ class SamplingPolicySelector:
         trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
         trials = math.prod(trial_dims)
         z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
-        env = self._env_for(trials * z * k * m)
+        env = self.env_for(trials * z * k * m)
         generator = self.generator or candidates[0].generator
         ids = torch.arange(k).reshape(k, 1, 1)
         if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
@@ -303,7 +308,12 @@ class SamplingPolicySelector:
         if not candidates:
             raise ValueError("candidates must not be empty")
         episodes = self.collect(candidates, iteration)
-        j_all = j_values(episodes, earlier_episodes, evaluation_policy, self.psi, self.lam)
+        data, earlier, policy = episodes, earlier_episodes, evaluation_policy
+        if self.device is not None:
+            data = episodes.to(self.device)
+            earlier = None if earlier is None else earlier.to(self.device)
+            policy = policy.to_device(self.device)
+        j_all = j_values(data, earlier, policy, self.psi, self.lam).cpu()
         j_mean = j_all.mean(-2)
         return Selection(
             index=torch.argmin(j_mean, dim=-1),
