@@ -68,3 +68,14 @@ def test_bad_calls():
         basis.phi(torch.zeros(3, 1), torch.tensor([0, 1, 2]))
     with pytest.raises(ValueError, match="action must have shape"):
         basis.phi(torch.zeros(3, 1), torch.tensor([0, 1]))
+
+
+def test_fast_paths_equal_the_generic_forms():
+    basis = _chain_basis()
+    obs = torch.rand(3, 7, 1, dtype=torch.float64) * 10
+    theta = torch.randn(3, 12, dtype=torch.float64)
+    generic_q = (basis.phi_all(obs) * theta[:, None, None, :]).sum(-1)
+    torch.testing.assert_close(basis.q_values(obs, theta), generic_q)
+    probs = torch.softmax(torch.randn(3, 7, 2, dtype=torch.float64), -1)
+    generic = (probs.unsqueeze(-1) * basis.phi_all(obs)).sum(-2)
+    torch.testing.assert_close(basis.expected_phi(obs, probs), generic)

@@ -16,7 +16,8 @@ class GaussianActionBasis(nn.Module):
     action after another, which changes nothing downstream (SPEC section 3).
 
     Any module with the same two methods (``phi_all`` and ``phi``) and the attributes
-    ``num_features`` and ``num_actions`` can stand in for this one.
+    ``num_features`` and ``num_actions`` can stand in for this one; ``q_values`` and
+    ``expected_phi`` are optional fast paths the library uses when a basis has them.
 
     Args:
         centers: Gaussian centres ``[C, d]``.
@@ -95,6 +96,37 @@ class GaussianActionBasis(nn.Module):
         index = action.long()[..., None, None].expand(*k.shape[:-1], 1, self.num_kernels)
         out.scatter_(-2, index, k.unsqueeze(-2))
         return out.reshape(*k.shape[:-1], self.num_features)
+
+    def q_values(self, obs: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """``θᵀ phi(s, ·)`` without building ``phi_all``.
+
+        obs ``[*T, ..., d]``, θ ``[*T, B]`` -> ``[*T, ..., A]``.
+
+        Uses the block structure: ``Q(s, a) = k(s) · θ_a`` with ``θ_a`` the action's block.
+        θ's leading dims ``*T`` must prefix the observation dims.
+        """
+        lead = theta.shape[:-1]
+        k = self.kernels(obs)
+        if k.shape[: len(lead)] != lead:
+            raise ValueError(
+                f"theta's leading dims {tuple(lead)} must prefix the observation dims "
+                f"{tuple(obs.shape[:-1])}"
+            )
+        blocks = theta.to(k.dtype).reshape(*lead, self.num_actions, self.num_kernels)
+        flat = k.reshape(*lead, -1, self.num_kernels)  # [*T, R, C+1]
+        q = flat @ blocks.mT  # [*T, R, A]
+        return q.reshape(*k.shape[:-1], self.num_actions)
+
+    def expected_phi(self, obs: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+        """``Σ_a pi(a|s) phi(s, a)`` without ``phi_all``: ``[..., d], [..., A] -> [..., B]``."""
+        k = self.kernels(obs)
+        if probs.shape != (*k.shape[:-1], self.num_actions):
+            raise ValueError(
+                f"probs must have shape {(*k.shape[:-1], self.num_actions)}, got "
+                f"{tuple(probs.shape)}"
+            )
+        blocks = probs.to(k.dtype).unsqueeze(-1) * k.unsqueeze(-2)  # [..., A, C+1]
+        return blocks.reshape(*k.shape[:-1], self.num_features)
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.phi(obs, action)

@@ -319,7 +319,10 @@ class LinearQPolicy(ActionProbsPolicy):
 
     def q_values(self, obs: torch.Tensor) -> torch.Tensor:
         """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
-        return linear_q_values(self.basis.phi_all(obs.to(torch.float64)), self.theta)
+        obs = obs.to(torch.float64)
+        if hasattr(self.basis, "q_values"):  # block-structured fast path
+            return self.basis.q_values(obs, self.theta)
+        return linear_q_values(self.basis.phi_all(obs), self.theta)
 
     @property
     def param_dims(self) -> tuple[int, ...]:

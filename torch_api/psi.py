@@ -40,21 +40,6 @@ def expected_next_features(next_phi_all: torch.Tensor, next_probs: torch.Tensor)
     return (next_probs.unsqueeze(-1).to(next_phi_all.dtype) * next_phi_all).sum(-2)
 
 
-def _dense_ids(columns: torch.Tensor) -> torch.Tensor:
-    """Ids ``[n]`` equal iff two rows of ``columns [n, c]`` are bit-identical.
-
-    Combines the columns one at a time with 1-D ``torch.unique`` (sort-based), much faster
-    than ``torch.unique(dim=0)``; ids stay below n² so int64 never overflows.
-    """
-    ids = torch.zeros(columns.shape[0], dtype=torch.long, device=columns.device)
-    for col in columns.unbind(-1):
-        _, col_ids = torch.unique(col, return_inverse=True)
-        _, ids = torch.unique(
-            ids * (int(col_ids.max()) + 1 if col_ids.numel() else 1) + col_ids, return_inverse=True
-        )
-    return ids
-
-
 def state_action_groups(
     obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -64,9 +49,9 @@ def state_action_groups(
         obs: ``[..., n, d]``; action: ``[..., n]`` indices; mask: optional bool ``[..., n]``.
 
     Returns:
-        long ``[..., n]`` ids, unique across the whole batch: two samples share an id iff they
-        belong to the same batch item and have bit-identical ``(s, a)``. Masked samples get a
-        group of their own.
+        long ``[..., n]`` ids, non-negative and below ``4 · numel`` (not necessarily
+        consecutive): two samples share an id iff they belong to the same batch item and have
+        bit-identical ``(s, a)``. Masked samples get a group of their own.
     """
     if action.shape != obs.shape[:-1]:
         raise ValueError(
@@ -75,15 +60,23 @@ def state_action_groups(
     flat_obs = obs.reshape(-1, obs.shape[-1])
     rows = flat_obs.shape[0]
     n = obs.shape[-2] if obs.ndim >= 2 else 1
-    item = torch.arange(rows, device=obs.device) // max(n, 1)
-    # Compare observations bit for bit (as integers), so that -0.0 and 0.0 or NaNs never merge.
+    flat_action = action.reshape(-1).long()
+    num_actions = int(flat_action.max()) + 1 if rows else 1
+    # (batch item, action) are small integers already: combine them arithmetically.
+    key = (torch.arange(rows, device=obs.device) // max(n, 1)) * num_actions + flat_action
+    # Observations compare bit for bit (as integers): one sort-based 1-D unique per column.
     bits = flat_obs.to(torch.float64).view(torch.int64)
-    columns = [item, action.reshape(-1).long(), *bits.unbind(-1)]
-    if mask is not None:
-        # A masked row keys on its own position, so it never joins a real group.
-        own = torch.arange(rows, device=obs.device)
-        columns.append(torch.where(mask.reshape(-1), -1, own))
-    return _dense_ids(torch.stack(columns, -1)).reshape(obs.shape[:-1])
+    for column in bits.unbind(-1):
+        values, col_ids = torch.unique(column, return_inverse=True)
+        key = key * values.numel() + col_ids
+        if rows and int(key.max()) >= 4 * rows:  # keep ids small (and far from overflow)
+            _, key = torch.unique(key, return_inverse=True)
+    if mask is not None:  # a masked row keys on its own position, never joining a real group
+        own = (int(key.max()) + 1 if rows else 0) + torch.arange(rows, device=obs.device)
+        key = torch.where(mask.reshape(-1), key, own)
+        if rows and int(key.max()) >= 4 * rows:
+            _, key = torch.unique(key, return_inverse=True)
+    return key.reshape(obs.shape[:-1])
 
 
 def _group_mean(values: torch.Tensor, groups: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -234,7 +227,10 @@ class PsiHat(nn.Module):
         """
         obs64, next64 = obs.to(torch.float64), next_obs.to(torch.float64)
         phi = self.basis.phi(obs64, action)
-        next_features = expected_next_features(self.basis.phi_all(next64), next_probs)
+        if hasattr(self.basis, "expected_phi"):  # block-structured fast path
+            next_features = self.basis.expected_phi(next64, next_probs)
+        else:
+            next_features = expected_next_features(self.basis.phi_all(next64), next_probs)
         groups = state_action_groups(obs, action, mask) if self.mode == "grouped" else None
         if self.mode == "knn":
             if terminated is not None:

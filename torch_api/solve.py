@@ -37,10 +37,16 @@ def _check_design(x: torch.Tensor, w: torch.Tensor, lam: float) -> None:
         raise ValueError("x holds no samples (n = 0): an empty data set cannot be solved")
     if not lam > 0:
         raise ValueError(f"lam must be > 0, got {lam}")
-    if not torch.isfinite(x).all():
-        raise ValueError("x (the psi_hat design) contains NaN or inf")
+    # x itself is checked through its moments (_check_moments): a NaN or inf anywhere in x
+    # reaches them (inf · 0 is NaN), and reading the small moments is far cheaper than x.
     if not torch.isfinite(w).all() or (w < 0).any():
         raise ValueError("w must be finite and non-negative (importance weights)")
+
+
+def _check_moments(*moments: torch.Tensor) -> None:
+    for moment in moments:
+        if not torch.isfinite(moment).all():
+            raise ValueError("x (the psi_hat design) contains NaN or inf")
 
 
 def _normaliser(num_samples, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -132,6 +138,7 @@ def weighted_ridge(
     n_mat = n[..., None, None] if n.ndim else n
     a_hat = weighted_moment(x, w, dtype=dtype) / n_mat
     b_hat = (x.to(dtype).mT @ (w.to(dtype) * r.to(dtype)).unsqueeze(-1)) / n_mat
+    _check_moments(a_hat, b_hat)
     eye = torch.eye(x.shape[-1], dtype=dtype, device=x.device)
     regularised = a_hat + lam * eye
     if check_conditioning:
@@ -206,16 +213,21 @@ def j_criterion(
         raise ValueError(
             f"u must have shape [..., {x.shape[-1]}, {x.shape[-1]}], got {tuple(u.shape)}"
         )
-    if sq_weights is None:
-        sq_weights = w.to(dtype).pow(2)
-    elif sq_weights.shape != w.shape:
+    if sq_weights is not None and sq_weights.shape != w.shape:
         raise ValueError(
             f"sq_weights must have shape {tuple(w.shape)}, got {tuple(sq_weights.shape)}"
         )
     n = _normaliser(num_samples, x, dtype)
     n_mat = n[..., None, None] if n.ndim else n
-    a = weighted_moment(x, w, dtype=dtype) / n_mat
-    c = weighted_moment(x, sq_weights, dtype=dtype) / n_mat.pow(2)
+    w = w.to(dtype)
+    xw = x.to(dtype) * w.clamp_min(0).sqrt().unsqueeze(-1)  # x √w
+    a = (xw.mT @ xw) / n_mat
+    if sq_weights is None:  # Σ w² x xᵀ = (x w)ᵀ (x w): reuse the buffer, x √w · √w = x w
+        xw.mul_(w.clamp_min(0).sqrt().unsqueeze(-1))
+    else:
+        xw = x.to(dtype) * sq_weights.to(dtype).clamp_min(0).sqrt().unsqueeze(-1)
+    c = (xw.mT @ xw) / n_mat.pow(2)
+    _check_moments(a, c)
     return j_from_moments(a, c, u, lam)
 
 
@@ -236,6 +248,29 @@ class AggregatedRows(NamedTuple):
     sq_weights: torch.Tensor
     r: torch.Tensor | None
     num_samples: int
+
+
+def _row_groups(rows: torch.Tensor, owner: torch.Tensor) -> torch.Tensor:
+    """Dense ids ``[R]`` equal iff two rows ``[R, B]`` are identical and share an owner.
+
+    A random projection gives each row a 1-D key, grouped by a sort-based 1-D unique; the
+    grouping is then verified exactly (every row equals its group's representative) and, in the
+    unlikely case two different rows share a key, redone with ``torch.unique(dim=0)``.
+    """
+    gen = torch.Generator(device="cpu").manual_seed(0x5EED)
+    direction = torch.randn(rows.shape[-1], generator=gen, dtype=torch.float64).to(rows.device)
+    key = rows.to(torch.float64) @ direction
+    # owners apart: offset keys by the owner index beyond the keys' own range
+    span = float(key.abs().max()) * 2 + 1 if key.numel() else 1.0
+    _, inverse = torch.unique(key + owner.to(torch.float64) * span, return_inverse=True)
+    first = torch.full(
+        (int(inverse.max()) + 1,), rows.shape[0], dtype=torch.long, device=rows.device
+    )
+    first.scatter_reduce_(0, inverse, torch.arange(rows.shape[0], device=rows.device), "amin")
+    if torch.equal(rows[first][inverse], rows) and torch.equal(owner[first][inverse], owner):
+        return inverse
+    keyed = torch.cat([owner.unsqueeze(-1).to(rows.dtype), rows], dim=-1)
+    return torch.unique(keyed, dim=0, return_inverse=True)[1]
 
 
 def aggregate_identical_rows(
@@ -262,16 +297,22 @@ def aggregate_identical_rows(
     lead, (n, num_features) = x.shape[:-2], x.shape[-2:]
     flat_x = x.reshape(-1, n, num_features)
     batch = flat_x.shape[0]
-    batch_id = torch.arange(batch, device=x.device, dtype=x.dtype).repeat_interleave(n)
-    keyed = torch.cat([batch_id.unsqueeze(-1), flat_x.reshape(-1, num_features)], dim=-1)
-    uniq, inverse = torch.unique(keyed, dim=0, return_inverse=True)
-    owner = uniq[:, 0].long()
+    rows = flat_x.reshape(-1, num_features)
+    owner_of_row = torch.arange(batch, device=x.device).repeat_interleave(n)
+    inverse = _row_groups(rows, owner_of_row)
+    num_groups = int(inverse.max()) + 1
+    first = torch.full((num_groups,), rows.shape[0], dtype=torch.long, device=x.device)
+    first.scatter_reduce_(0, inverse, torch.arange(rows.shape[0], device=x.device), "amin")
+    uniq_rows, owner = rows[first], owner_of_row[first]
     counts = torch.bincount(owner, minlength=batch)
     slot_start = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(uniq.shape[0], device=x.device) - slot_start[owner]
+    order = torch.argsort(owner, stable=True)  # groups of one batch item next to each other
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(num_groups, device=x.device)
+    slot = rank - slot_start[owner]
     groups = int(counts.max())
     out_x = x.new_zeros(batch, groups, num_features)
-    out_x[owner, slot] = uniq[:, 1:]
+    out_x[owner, slot] = uniq_rows
     flat_slot = owner * groups + slot
     target = flat_slot[inverse]
     wd = w.reshape(-1).to(torch.float64)
