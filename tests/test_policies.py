@@ -7,6 +7,7 @@ from tensordict import TensorDict
 from torch_api.basis import GaussianActionBasis
 from torch_api.policies import (
     LinearQPolicy,
+    TabularPolicy,
     epsilon_greedy_probs,
     greedy_actions,
     softmax_probs,
@@ -101,3 +102,15 @@ def test_bad_construction(kwargs, message):
     args = {"basis": _basis(), "theta": torch.ones(8), "epsilon": 0.1} | kwargs
     with pytest.raises(ValueError, match=message):
         LinearQPolicy(**args)
+
+
+def test_tabular_policy_and_trial_major_rows():
+    table = torch.tensor([[[0.9, 0.1], [0.2, 0.8]], [[0.5, 0.5], [1.0, 0.0]]], dtype=torch.float64)
+    policy = TabularPolicy(table=table, state_index=lambda obs: obs[..., 0].long())
+    obs = torch.tensor([[0.0], [1.0], [1.0], [0.0]])  # rows of trial 0, then of trial 1
+    expected = torch.tensor([[0.9, 0.1], [0.2, 0.8], [1.0, 0.0], [0.5, 0.5]], dtype=torch.float64)
+    torch.testing.assert_close(policy.action_probs(obs), expected)
+    with pytest.raises(ValueError, match="divisible by 2"):
+        policy.action_probs(torch.zeros(3, 1))
+    with pytest.raises(ValueError, match="rows must sum to 1"):
+        TabularPolicy(table=torch.tensor([[0.5, 0.6]]), state_index=lambda obs: obs[..., 0].long())

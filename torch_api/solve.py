@@ -125,7 +125,8 @@ def weighted_ridge(
 
     Example:
         >>> x = torch.randn(3, 50, 4, dtype=torch.float64)
-        >>> theta = weighted_ridge(x, torch.ones(3, 50), x @ torch.ones(4), 1e-3)
+        >>> r = x @ torch.ones(4, dtype=torch.float64)
+        >>> theta = weighted_ridge(x, torch.ones(3, 50), r, 1e-3)
         >>> theta.shape
         torch.Size([3, 4])
     """

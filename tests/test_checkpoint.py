@@ -1,0 +1,106 @@
+"""ActivePolicyIteration checkpoints: resume equals an uninterrupted run; bad files are refused."""
+
+import pickle
+
+import pytest
+import torch
+
+from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
+from torch_api.basis import GaussianActionBasis
+from torch_api.iteration import ActivePolicyIteration
+
+
+def _api(path=None, trials=3, mode="active"):
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    return ActivePolicyIteration(
+        env=lambda e: ChainWalkEnv(batch_size=e),
+        basis=basis,
+        schedule=(3, 2, 2),
+        num_steps=10,
+        gamma=GAMMA,
+        mode=mode,
+        num_repeats=2,
+        psi_mode="grouped",
+        num_trials=trials,
+        seed=7,
+        checkpoint_path=path,
+    )
+
+
+def _same_history(a, b):
+    assert torch.equal(a.theta, b.theta)
+    for ra, rb in zip(a.history, b.history, strict=True):
+        assert (ra.chosen, ra.j_mean, ra.rewarded_transitions) == (
+            rb.chosen,
+            rb.j_mean,
+            rb.rewarded_transitions,
+        )
+
+
+@pytest.mark.parametrize("interrupt", ["after_buy", "after_iteration"])
+def test_resume_reproduces_the_uninterrupted_run(tmp_path, interrupt):
+    full = _api()
+    full.run()
+    path = tmp_path / "run.pt"
+    first = _api(path)
+    first.step()
+    if interrupt == "after_buy":
+        first._buy()  # rewards of iteration 2 bought and saved, θ_2 not yet fitted
+    resumed = _api(path)
+    resumed.load(path)
+    assert resumed.iteration == 1
+    bought_before = len(resumed.rewarded)
+    resumed.run()
+    _same_history(full, resumed)
+    assert resumed.rewarded_transitions == (3 + 2 + 2) * 10  # nothing bought twice
+    if interrupt == "after_buy":
+        assert bought_before == 3 + 2
+
+
+def test_checkpoint_of_other_settings_is_refused(tmp_path):
+    path = tmp_path / "run.pt"
+    _api(path).step()
+    with pytest.raises(ValueError, match=r"other settings: \['num_trials'\]"):
+        _api(trials=2).load(path)
+    with pytest.raises(ValueError, match=r"other settings: \['mode'\]"):
+        _api(mode="passive").load(path)
+
+
+def test_truncated_checkpoint_is_refused_and_leaves_state_alone(tmp_path):
+    path = tmp_path / "run.pt"
+    _api(path).step()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    fresh = _api()
+    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+        fresh.load(path)
+    assert fresh.iteration == 0 and len(fresh.rewarded) == 0
+
+
+class _Payload:
+    def __reduce__(self):
+        return (print, ("code ran",))
+
+
+def test_checkpoint_carrying_a_pickled_object_is_refused(tmp_path):
+    path = tmp_path / "evil.pt"
+    torch.save({"format": 1, "evil": _Payload()}, path, pickle_module=pickle)
+    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+        _api().load(path)
+
+
+def test_wrong_format_version_is_refused(tmp_path):
+    path = tmp_path / "run.pt"
+    api = _api(path)
+    api.step()
+    state = api.state_dict()
+    state["format"] = 99
+    torch.save(state, path)
+    with pytest.raises(ValueError, match="checkpoint format 99"):
+        _api().load(path)
+
+
+def test_save_is_atomic_no_temporary_file_left(tmp_path):
+    path = tmp_path / "run.pt"
+    _api(path).step()
+    assert path.exists() and not (tmp_path / "run.pt.tmp").exists()
