@@ -116,7 +116,8 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     sampler = TabularPolicy(
         table=row_tables(cand_tables, (t, z, k, m)), state_index=state_index, generator=generator
     )
-    free = collect_episodes(env, sampler, num_episodes=t * z * k * m, num_steps=n, rewarded=False)
+    # one table per environment row: the policy's "trials" are the rows, one episode each
+    free = collect_episodes(env, sampler, num_episodes=1, num_steps=n, rewarded=False)
     j_all = j_values(free.reshape(t, z, k, m, n), None, evaluation, psi, args.lam)  # [T, Z, K]
     j_prime = j_all.mean(1)
 
@@ -125,7 +126,7 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     sampler = TabularPolicy(
         table=row_tables(cand_tables, (t, k, m)), state_index=state_index, generator=generator
     )
-    bought = collect_episodes(env, sampler, num_episodes=t * k * m, num_steps=n, rewarded=True)
+    bought = collect_episodes(env, sampler, num_episodes=1, num_steps=n, rewarded=True)
     design = build_design(bought.reshape(t, k, m, n), evaluation, psi)
     theta = weighted_ridge(design.x, design.w, design.reward, args.lam)  # [T, K, B]
 

@@ -124,7 +124,17 @@ def test_weighted_ridge_rejects_bad_input(kwargs, message):
 def test_rank_deficient_design_warns_with_condition_number():
     x = torch.ones(20, 4, dtype=torch.float64)  # rank 1
     with pytest.warns(RuntimeWarning, match="condition number"):
-        weighted_ridge(x, torch.ones(20), torch.ones(20), 1e-14, check_conditioning=True)
+        weighted_ridge(x, torch.ones(20), torch.ones(20), 1e-14)
+
+
+def test_well_conditioned_solve_does_not_warn():
+    import warnings
+
+    gen = torch.Generator().manual_seed(5)
+    x, w, r = _data(gen)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        weighted_ridge(x, w, r, LAM)
 
 
 def test_j_criterion_rejects_wrong_u_shape():

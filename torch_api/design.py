@@ -6,6 +6,7 @@ format of :mod:`torch_api.data` for one evaluation policy.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -13,9 +14,11 @@ from tensordict import TensorDictBase
 
 from torch_api.data import REWARD_KEY
 from torch_api.psi import PsiHat
-from torch_api.weights import per_decision_weights
+from torch_api.weights import effective_sample_size, per_decision_weights
 
 __all__ = ["Design", "build_design"]
+
+DEFAULT_MIN_ESS_FRACTION = 0.01  # warn when a data set's effective sample size falls below this
 
 
 class Design(NamedTuple):
@@ -42,7 +45,13 @@ def taken_probs(probs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return torch.gather(probs, -1, action.unsqueeze(-1)).squeeze(-1)
 
 
-def build_design(episodes: TensorDictBase, policy, psi: PsiHat) -> Design:
+def build_design(
+    episodes: TensorDictBase,
+    policy,
+    psi: PsiHat,
+    *,
+    min_ess_fraction: float = DEFAULT_MIN_ESS_FRACTION,
+) -> Design:
     """psi_hat (eq. 20) and weights (eq. 21) of a data set under an evaluation policy.
 
     The data set ``D`` of eq. 20 is everything in ``episodes`` along its last two dims: every
@@ -53,6 +62,9 @@ def build_design(episodes: TensorDictBase, policy, psi: PsiHat) -> Design:
         policy: the evaluation policy pi, with ``action_probs(obs [..., d]) -> [..., A]``; its
             parameters' leading dims (e.g. a trial dimension) must prefix ``[...]``.
         psi: the psi_hat module (basis, γ, grouping mode).
+        min_ess_fraction: warn (``RuntimeWarning``) when a data set's effective sample size
+            ``(Σ w)² / Σ w²`` falls below this fraction of its samples: the importance weights
+            are so skewed that a few episodes decide the fit.
 
     Returns:
         :class:`Design` with ``n = M N``.
@@ -83,13 +95,32 @@ def build_design(episodes: TensorDictBase, policy, psi: PsiHat) -> Design:
         flat(mask, 0),
     )
     flat_mask = flat(mask, 0)
+    flat_weights = flat(weights, 0)
+    _warn_on_collapsed_weights(flat_weights, flat_mask, min_ess_fraction)
     reward = episodes.get(REWARD_KEY, None)
     if reward is not None:
         reward = flat(reward, 0).to(torch.float64) * flat_mask
     return Design(
         x=x,
-        w=flat(weights, 0),
+        w=flat_weights,
         mask=flat_mask,
         reward=reward,
         num_samples=flat_mask.sum(-1),
     )
+
+
+def _warn_on_collapsed_weights(w: torch.Tensor, mask: torch.Tensor, fraction: float) -> None:
+    ess = effective_sample_size(w)
+    n = mask.sum(-1).to(ess.dtype)
+    collapsed = ess < fraction * n
+    if collapsed.any():
+        worst = int(torch.argmin(ess / n.clamp_min(1)).item()) if ess.ndim else 0
+        flat_ess, flat_n = ess.reshape(-1), n.reshape(-1)
+        warnings.warn(
+            f"importance weights collapsed: effective sample size {flat_ess[worst].item():.2f} of "
+            f"n = {int(flat_n[worst])} samples (below {fraction:.0%}) in "
+            f"{int(collapsed.sum())} of {collapsed.numel()} data set(s); the sampling policy is "
+            "far from the evaluation policy, and a few episodes decide the fit",
+            RuntimeWarning,
+            stacklevel=3,
+        )

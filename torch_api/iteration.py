@@ -267,7 +267,10 @@ class ActivePolicyIteration:
         if self.improvement == "softmax":
             rule = {"beta": self.beta}
         else:
-            rule = {"epsilon": self.epsilon_schedule(iteration)}
+            epsilon = self.epsilon_schedule(iteration)
+            if not 0 <= epsilon <= 1:
+                raise ValueError(f"epsilon_schedule({iteration}) = {epsilon} lies outside [0, 1]")
+            rule = {"epsilon": epsilon}
         return LinearQPolicy(basis=self.basis, theta=theta, generator=self.generator, **rule)
 
     def _candidate_rules(self) -> torch.Tensor:
@@ -319,15 +322,24 @@ class ActivePolicyIteration:
             if self.keep_reward_free:
                 free = selection.episodes
                 self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
-        bought = collect_episodes(
-            self._env_for(math.prod(self.trial_dims) * num_episodes),
-            self._with_rule(rules[chosen]),  # one candidate per trial
-            num_episodes=num_episodes,
-            num_steps=self.num_steps,
-            rewarded=True,
-            iteration=l_now,
-            policy_id=chosen,
-        )
+        try:
+            bought = collect_episodes(
+                self._env_for(math.prod(self.trial_dims) * num_episodes),
+                self._with_rule(rules[chosen]),  # one candidate per trial
+                num_episodes=num_episodes,
+                num_steps=self.num_steps,
+                rewarded=True,
+                iteration=l_now,
+                policy_id=chosen,
+            )
+        except Exception as error:
+            where = f" (checkpoint {self.checkpoint_path})" if self.checkpoint_path else ""
+            raise RuntimeError(
+                f"collecting the rewarded episodes of iteration {l_now} failed: "
+                f"{type(error).__name__}: {error}. The {len(self.rewarded)} episodes bought "
+                f"before (per trial) are kept in api.rewarded{where}; none of this batch was "
+                "stored"
+            ) from error
         self.rewarded.extend(bought)
         self._pending = {
             "chosen": chosen,
