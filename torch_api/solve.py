@@ -166,13 +166,13 @@ def j_from_moments(
         a: ``A = (1/n) Σ w x xᵀ``, ``[..., B, B]``.
         c: ``C = (1/n²) Σ w² x xᵀ``, ``[..., B, B]``.
         u: ``Ũ``, ``[..., B, B]`` (broadcast against ``a``).
-        lam: λ > 0.
+        lam: λ ≥ 0 (λ = 0 is for analysis only: A must then be positive definite).
 
     Returns:
         J ``[...]``.
     """
-    if not lam > 0:
-        raise ValueError(f"lam must be > 0, got {lam}")
+    if not lam >= 0:
+        raise ValueError(f"lam must be >= 0, got {lam}")
     eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
     chol = _cholesky(a + lam * eye, lam)
     u = u.to(a.dtype).expand(*a.shape[:-2], *u.shape[-2:]) if u.ndim < a.ndim else u.to(a.dtype)
