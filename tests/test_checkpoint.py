@@ -104,3 +104,45 @@ def test_save_is_atomic_no_temporary_file_left(tmp_path):
     path = tmp_path / "run.pt"
     _api(path).step()
     assert path.exists() and not (tmp_path / "run.pt.tmp").exists()
+
+
+class _FaultyChain(ChainWalkEnv):
+    """A robot that breaks down on its 3rd step of rewarded collection in iteration 2."""
+
+    steps = 0
+
+    def _step(self, td):
+        if self.batch_size[0] == 3 * 2:  # the rewarded env of T = 3 trials, M_2 = 2
+            type(self).steps += 1
+            if type(self).steps == 3:
+                raise OSError("arm controller stopped responding")
+        return super()._step(td)
+
+
+def test_env_fault_while_buying_keeps_earlier_rewards_and_names_the_failure(tmp_path):
+    path = tmp_path / "run.pt"
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    api = ActivePolicyIteration(
+        env=lambda e: _FaultyChain(batch_size=e),
+        basis=basis,
+        schedule=(3, 2, 2),
+        num_steps=10,
+        gamma=GAMMA,
+        num_repeats=2,
+        psi_mode="grouped",
+        num_trials=3,
+        seed=7,
+        checkpoint_path=path,
+    )
+    api.step()
+    with pytest.raises(RuntimeError, match="iteration 2 failed: OSError: arm controller") as info:
+        api.step()
+    assert "The 3 episodes bought before (per trial) are kept" in str(info.value)
+    assert len(api.rewarded) == 3
+    resumed = _api()  # same settings, a healthy robot
+    resumed.load(path)
+    assert len(resumed.rewarded) == 3 and resumed.iteration == 1
+    resumed.run()
+    full = _api()
+    full.run()
+    _same_history(full, resumed)
