@@ -727,6 +727,34 @@ class ChainWalkEnv(EnvBase):
         rng = torch.Generator(device=self.device)
         rng.manual_seed(int(seed))
         self.rng = rng
+        self.block_rngs: list[torch.Generator] | None = None
+
+    def set_block_seeds(self, seeds: Sequence[int]) -> None:
+        """Give each of ``len(seeds)`` equal, consecutive blocks of rows its own random stream.
+
+        With rows laid out block-major (e.g. one block per independent trial), block ``b``
+        then draws exactly what an env of one block seeded with ``seeds[b]`` would: a batched
+        run of many trials reproduces one-at-a-time runs. ``set_seed`` returns to one stream.
+        """
+        rows = self.batch_size.numel()
+        if not seeds or rows % len(seeds):
+            raise ValueError(
+                f"seeds must split the {rows} rows into equal blocks, got {len(seeds)} seeds"
+            )
+        self.block_rngs = [
+            torch.Generator(device=self.device).manual_seed(int(seed)) for seed in seeds
+        ]
+
+    def _draw(self, sampler, shape: torch.Size, *args) -> torch.Tensor:
+        """``sampler(*args, shape, generator=...)`` from one stream, or one stream per block."""
+        if self.block_rngs is None:
+            return sampler(*args, shape, generator=self.rng, device=self.device)
+        rows = shape[0] // len(self.block_rngs)
+        parts = [
+            sampler(*args, (rows, *shape[1:]), generator=rng, device=self.device)
+            for rng in self.block_rngs
+        ]
+        return torch.cat(parts)
 
     # -- dynamics -----------------------------------------------------------------------------
 
@@ -742,9 +770,7 @@ class ChainWalkEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size
-        state = torch.randint(
-            1, self.n_states + 1, (*shape, 1), generator=self.rng, device=self.device
-        )
+        state = self._draw(torch.randint, torch.Size((*shape, 1)), 1, self.n_states + 1)
         out = {"observation": state.to(torch.float32)}
         if self.max_steps is not None:
             out["step_count"] = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
@@ -785,7 +811,7 @@ class ChainWalkEnv(EnvBase):
             )
         action = self._action_indices(tensordict["action"])
         intended = 2 * action - 1  # 'L' -> -1, 'R' -> +1
-        success = torch.rand(shape, generator=self.rng, device=self.device) < self.success_prob
+        success = self._draw(torch.rand, shape) < self.success_prob
         move = torch.where(success, intended, -intended)
         next_state = (state + move).clamp(1, self.n_states)
         out = {

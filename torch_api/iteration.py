@@ -30,7 +30,7 @@ from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
 CHECKPOINT_FORMAT = 1  # version of the checkpoint layout written by ActivePolicyIteration.save
-_STREAMS = {"policy": 0, "reward_free_env": 1, "rewarded_env": 2, "evaluation": 3}
+_STREAMS = {"policy": 0, "reward_free_env": 1, "rewarded_env": 2, "evaluation": 3, "trial": 4}
 
 MODES = ("active", "passive")
 IMPROVEMENTS = ("epsilon_greedy", "softmax")
@@ -130,6 +130,11 @@ class ActivePolicyIteration:
             environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
             the same seed in active and passive mode share the rewarded environments' streams
             (a paired design).
+        trial_seeds: with ``num_trials``, one seed per trial (default: derived from ``seed``).
+            Each trial then draws from streams of its own, seeded from ``(trial_seed, l)``: the
+            policies' sampling and, for environments with ``set_block_seeds`` (this project's
+            envs), the environments' rows of that trial. A batched run of T trials then gives
+            the numbers of T runs with ``num_trials=1, trial_seeds=[s_t]``.
         keep_reward_free: store the selector's reward-free episodes in ``reward_free``.
         checkpoint_path: if set, the whole state is saved there (atomically) right after each
             batch of rewarded episodes is bought and after every iteration; resume with
@@ -173,6 +178,7 @@ class ActivePolicyIteration:
         evaluate: Callable[[LinearQPolicy, int], dict] | None = None,
         num_trials: int | None = None,
         seed: int = 0,
+        trial_seeds: Sequence[int] | None = None,
         keep_reward_free: bool = True,
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
@@ -219,6 +225,16 @@ class ActivePolicyIteration:
         self.beta = beta
         self.evaluate = evaluate
         self.seed = int(seed)
+        if num_trials is None and trial_seeds is not None:
+            raise ValueError("trial_seeds needs num_trials")
+        if num_trials is not None and trial_seeds is None:
+            trial_seeds = [derive_seed(self.seed, t, "trial") for t in range(num_trials)]
+        if trial_seeds is not None and len(trial_seeds) != num_trials:
+            raise ValueError(
+                f"trial_seeds must hold num_trials = {num_trials} seeds, got {len(trial_seeds)}"
+            )
+        self.trial_seeds = None if trial_seeds is None else [int(t) for t in trial_seeds]
+        self._block_generators: list[torch.Generator] | None = None
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
@@ -288,18 +304,31 @@ class ActivePolicyIteration:
         """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
         return [self._with_rule(rule) for rule in self._candidate_rules()]
 
+    def block_seeds(self, iteration: int, stream: str) -> list[int]:
+        """Per-trial seeds of one stream of iteration l (``trial_seeds`` runs only)."""
+        if self.trial_seeds is None:
+            raise ValueError("block_seeds needs a run with num_trials")
+        return [derive_seed(s, iteration, stream) for s in self.trial_seeds]
+
+    def _seed_env(self, env: EnvBase, iteration: int, stream: str) -> None:
+        if self.trial_seeds is not None and hasattr(env, "set_block_seeds"):
+            env.set_block_seeds(self.block_seeds(iteration, stream))
+        else:
+            env.set_seed(derive_seed(self.seed, iteration, stream))
+
     def _seed_iteration(self, iteration: int, num_episodes: int) -> None:
-        """Re-seed the policies' stream and the environments of iteration l."""
+        """Re-seed the policies' streams and the environments of iteration l."""
         trials = math.prod(self.trial_dims)
         self.generator.manual_seed(derive_seed(self.seed, iteration, "policy"))
-        self._env_for(trials * num_episodes).set_seed(
-            derive_seed(self.seed, iteration, "rewarded_env")
-        )
+        if self.trial_seeds is not None:
+            self._block_generators = [
+                torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "policy")
+            ]
+            self.policy.block_generators = self._block_generators
+        self._seed_env(self._env_for(trials * num_episodes), iteration, "rewarded_env")
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
-            self.selector.env_for(batch).set_seed(
-                derive_seed(self.seed, iteration, "reward_free_env")
-            )
+            self._seed_env(self.selector.env_for(batch), iteration, "reward_free_env")
 
     def _buy(self) -> None:
         """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes."""
@@ -401,6 +430,7 @@ class ActivePolicyIteration:
             "num_repeats": self.num_repeats,
             "num_trials": self.num_trials,
             "seed": self.seed,
+            "trial_seeds": self.trial_seeds,
             "psi_mode": self.psi.mode,
             "improvement": self.improvement,
             "num_features": self.basis.num_features,

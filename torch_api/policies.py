@@ -121,6 +121,10 @@ class ActionProbsPolicy(TensorDictModuleBase):
         self.in_keys = [observation_key]
         self.out_keys = [action_key, probs_key]
 
+    def _copy_streams(self, other: ActionProbsPolicy) -> ActionProbsPolicy:
+        other.block_generators = self.block_generators
+        return other
+
     def _io_kwargs(self) -> dict:
         return {
             "one_hot": self.one_hot,
@@ -158,14 +162,31 @@ class ActionProbsPolicy(TensorDictModuleBase):
         probs = self._action_probs(grid)
         return probs.reshape(*obs.shape[:-1], probs.shape[-1])
 
+    block_generators: list[torch.Generator] | None = None
+    """One random stream per equal, consecutive block of rows (e.g. per trial), or None."""
+
     def sample(self, probs: torch.Tensor) -> torch.Tensor:
-        """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator."""
-        uniform = torch.rand(
-            probs.shape[:-1],
-            generator=self.generator,
-            dtype=torch.float64,
-            device=self.generator.device,
-        ).to(probs.device)
+        """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator.
+
+        With ``block_generators`` set, the rows (flattened leading dims, trial-major) are split
+        into equal blocks, each drawn from its own generator.
+        """
+        shape = probs.shape[:-1]
+        if self.block_generators is None:
+            uniform = torch.rand(
+                shape, generator=self.generator, dtype=torch.float64, device=self.generator.device
+            )
+        else:
+            rows, blocks = shape.numel(), len(self.block_generators)
+            if rows % blocks:
+                raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
+            uniform = torch.cat(
+                [
+                    torch.rand(rows // blocks, generator=g, dtype=torch.float64, device=g.device)
+                    for g in self.block_generators
+                ]
+            ).reshape(shape)
+        uniform = uniform.to(probs.device)
         cdf = probs.cumsum(-1)
         return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
 
@@ -340,8 +361,10 @@ class LinearQPolicy(ActionProbsPolicy):
     def to_device(self, device) -> LinearQPolicy:
         """A copy whose θ lives on ``device`` (the sampling generator stays where it is)."""
         rule = {"beta": self.beta} if self.beta is not None else {"epsilon": self.epsilon}
-        return LinearQPolicy(
-            basis=self.basis, theta=self.theta.to(device), **rule, **self._io_kwargs()
+        return self._copy_streams(
+            LinearQPolicy(
+                basis=self.basis, theta=self.theta.to(device), **rule, **self._io_kwargs()
+            )
         )
 
     def with_rule(
@@ -351,6 +374,8 @@ class LinearQPolicy(ActionProbsPolicy):
         beta: float | torch.Tensor | None = None,
     ) -> LinearQPolicy:
         """The same θ and basis under another rule (e.g. the candidates of eq. 59)."""
-        return LinearQPolicy(
-            basis=self.basis, theta=self.theta, epsilon=epsilon, beta=beta, **self._io_kwargs()
+        return self._copy_streams(
+            LinearQPolicy(
+                basis=self.basis, theta=self.theta, epsilon=epsilon, beta=beta, **self._io_kwargs()
+            )
         )

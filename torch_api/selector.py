@@ -254,6 +254,7 @@ class SamplingPolicySelector:
         ids = torch.arange(k).reshape(k, 1, 1)
         if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
             stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
+            stack.block_generators = getattr(candidates[0], "block_generators", None)
             episodes = collect_episodes(
                 env,
                 stack,

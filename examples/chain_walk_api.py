@@ -1,0 +1,371 @@
+"""Active vs passive policy iteration on the 10-state chain walk (paper section 4.2, Figure 8).
+
+For each schedule of rewarded episodes — 'decreasing' M = (5, 5, 3, 3, 3, 1, 1) and 'fixed'
+M = (3,) * 7, N = 10 steps each — it runs Algorithm 1 twice on the same seeds (paired design):
+AL (``mode="active"``: the sampling policy of every iteration chosen by J', Z = 5 repeats) and
+PL (``mode="passive"``: sample with the evaluation policy itself). All trials of a run are one
+batched computation (``num_trials``). After every iteration the performance of pi_{l+1} is
+measured twice:
+
+* ``test_return``: the paper's estimate (eq. 61), ``(1/50) Σ_m Σ_n γ^(n-1) r`` over 50 test
+  episodes of 50 steps collected with pi_{l+1} (its own ε-greedy rule) on a separately seeded
+  env, with a sampling stream of its own so that testing never perturbs learning;
+* ``exact_return``: the same quantity's exact expectation from the model
+  (:func:`~envs.chain_walk.expected_discounted_return`, horizon 50), and ``percent_optimal``,
+  that value in % of the optimal deterministic policy's exact value.
+
+Iteration 0 holds pi_1 (θ = 1, shared by AL and PL). At the last iteration AL and PL are
+compared by a two-tailed paired t-test on both measures.
+
+Seeds: run seed ``1000·seed + 100·(schedule index)``, the same for AL and PL. The library
+re-seeds, per iteration, the policies' stream and the rewarded and reward-free environments from
+``(run seed, l)``, and hands the evaluation a seed derived from ``(run seed, l)``: AL and PL share
+every stream they can (a paired design), and the test episodes of a pair meet the same noise.
+
+Outputs in ``--out-dir``: ``chain_walk_api.json`` (every number per trial and iteration:
+performance, chosen candidate, its ε, J' of every candidate, transitions bought; θ and the
+per-repeat J are left out), ``chain_walk_api.csv`` (one row per schedule × method × iteration ×
+trial) and ``fig8_performance.png`` (mean ± standard error over trials).
+
+    python examples/chain_walk_api.py --trials 1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from envs.chain_walk import (  # noqa: E402
+    CENTERS,
+    GAMMA,
+    N_ACTIONS,
+    TAU,
+    ChainWalkEnv,
+    chain_walk_model,
+    expected_discounted_return,
+    optimal_policy,
+)
+from torch_api.basis import GaussianActionBasis  # noqa: E402
+from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
+from torch_api.iteration import ActivePolicyIteration  # noqa: E402
+from torch_api.policies import LinearQPolicy  # noqa: E402
+
+SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
+METHODS = {"AL": "active", "PL": "passive"}
+MEASURES = ("test_return", "exact_return", "percent_optimal")
+_ROLE_REWARDED, _ROLE_REWARD_FREE, _ROLE_TEST = 1, 2, 3  # environment seed streams
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the iterated chain-walk experiment."""
+
+    trials: int = 1000
+    """independent trials, all run as one batch (the paper: 1000)"""
+    seed: int = 0
+    """master seed; AL and PL of a schedule share their seeds"""
+    out_dir: str = "results/chain_walk_api"
+    """where the JSON, the CSV and the figure go"""
+    repeats: int = 5
+    """Z, J-values averaged into J'"""
+    lam: float = 1e-3
+    """λ, ridge regularisation"""
+    schedule: str = "both"
+    """'decreasing', 'fixed' or 'both'"""
+    iterations: int = 7
+    """L, iterations run (the schedules' first L entries; 7 in the paper)"""
+    steps: int = 10
+    """N, steps per rewarded episode"""
+    test_episodes: int = 50
+    """test episodes per trial for the performance estimate (eq. 61)"""
+    test_steps: int = 50
+    """steps per test episode (and the horizon of the exact value)"""
+    threads: int = 0
+    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+
+
+def parse_args(argv=None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for field in dataclasses.fields(Args):
+        parser.add_argument(
+            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
+        )
+    args = Args(**vars(parser.parse_args(argv)))
+    if args.schedule not in (*SCHEDULES, "both"):
+        raise ValueError(f"--schedule must be one of {(*SCHEDULES, 'both')}, got {args.schedule}")
+    if not 1 <= args.iterations <= 7:
+        raise ValueError(f"--iterations must lie in 1 … 7, got {args.iterations}")
+    if args.trials < 2:
+        raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
+    return args
+
+
+def derived_seed(*parts: int) -> int:
+    """A 31-bit seed derived deterministically from integers (distinct parts, distinct seeds)."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] >> 1)
+
+
+def env_factory(run_seed: int, role: int):
+    """``batch_size -> ChainWalkEnv`` with a seed of its own per role and batch size."""
+    return lambda batch: ChainWalkEnv(batch_size=batch, seed=derived_seed(run_seed, role, batch))
+
+
+def make_evaluator(args: Args, run_seed: int):
+    """The ``evaluate`` callback: performance of pi_{l+1} per trial (eq. 61 and exact)."""
+    trials, m, n = args.trials, args.test_episodes, args.test_steps
+    env = ChainWalkEnv(batch_size=trials * m, seed=derived_seed(run_seed, _ROLE_TEST))
+    generator = torch.Generator().manual_seed(derived_seed(run_seed, _ROLE_TEST, 0))
+    model = chain_walk_model()
+    P, R = model.transitions, model.expected_reward
+    best, _ = optimal_policy(P, R, GAMMA)
+    best_probs = torch.nn.functional.one_hot(best, N_ACTIONS).to(torch.float64)
+    optimum = expected_discounted_return(P, R, best_probs, model.initial, GAMMA, n)
+    states = torch.arange(1, model.n_states + 1, dtype=torch.float64).unsqueeze(-1)
+    discounts = GAMMA ** torch.arange(n, dtype=torch.float64)
+
+    def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
+        # ``seed`` (from the library, derived from the run seed and l) re-seeds the test env and
+        # the test sampling stream: AL and PL of a pair meet the same test noise. The policy is
+        # copied onto that stream: testing never consumes the learner's stream.
+        if seed is not None:
+            env.set_seed(derived_seed(seed, 0))
+            generator.manual_seed(derived_seed(seed, 1))
+        tester = LinearQPolicy(
+            basis=policy.basis, theta=policy.theta, epsilon=policy.epsilon, generator=generator
+        )
+        episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
+        reward = episodes[REWARD_KEY].to(torch.float64) * episodes["mask"]  # [T, m, n]
+        test_return = (reward * discounts).sum(-1).mean(-1)  # eq. 61, [T]
+        table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
+        exact = expected_discounted_return(P, R, table, model.initial, GAMMA, n)  # [T]
+        return {
+            "test_return": test_return.tolist(),
+            "exact_return": exact.tolist(),
+            "percent_optimal": (100.0 * exact / optimum).tolist(),
+        }
+
+    return evaluate, float(optimum)
+
+
+def run_method(args: Args, schedule: tuple[int, ...], mode: str, run_seed: int) -> dict:
+    """One batched run of Algorithm 1 (all trials); per-iteration, per-trial records."""
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
+    evaluate, optimum = make_evaluator(args, run_seed)
+    api = ActivePolicyIteration(
+        env=env_factory(run_seed, _ROLE_REWARDED),
+        reward_free_env=env_factory(run_seed, _ROLE_REWARD_FREE),
+        basis=basis,
+        schedule=schedule,
+        num_steps=args.steps,
+        gamma=GAMMA,
+        mode=mode,
+        lam=args.lam,
+        num_repeats=args.repeats,
+        psi_mode="grouped",
+        evaluate=evaluate,
+        num_trials=args.trials,
+        seed=run_seed,
+        keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
+    )
+    initial = evaluate(api.policy, derived_seed(run_seed, _ROLE_TEST, 0))  # pi_1, iteration 0
+    started = time.perf_counter()
+    history = api.run(progress=True)
+    seconds = time.perf_counter() - started
+    return {
+        "mode": mode,
+        "seed": run_seed,
+        "seconds": seconds,
+        "optimal_exact_return": optimum,
+        "iterations": [{"iteration": 0, "episodes_bought": 0, "rewarded_transitions": 0, **initial}]
+        + [
+            {
+                "iteration": rec.iteration,
+                "episodes_bought": rec.episodes_bought,
+                "rewarded_transitions": rec.rewarded_transitions,
+                "reward_free_transitions": rec.reward_free_transitions,
+                "chosen": rec.chosen,
+                "sampling_epsilon": rec.sampling_rule,
+                "j_mean": rec.j_mean,
+                "seconds": rec.seconds,
+                **rec.performance,
+            }
+            for rec in history
+        ],
+    }
+
+
+def mean_se(values) -> tuple[float, float]:
+    """Mean and standard error of the mean."""
+    x = np.asarray(values, dtype=np.float64)
+    return float(x.mean()), float(x.std(ddof=1) / math.sqrt(x.size))
+
+
+def paired_tests(runs: dict) -> dict:
+    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure."""
+    al, pl = runs["AL"]["iterations"][-1], runs["PL"]["iterations"][-1]
+    out = {}
+    for measure in ("test_return", "exact_return"):
+        a, p = np.asarray(al[measure]), np.asarray(pl[measure])
+        test = scipy.stats.ttest_rel(a, p)
+        out[measure] = {
+            "iteration": al["iteration"],
+            "mean_difference": float((a - p).mean()),
+            "t": float(test.statistic),
+            "p": float(test.pvalue),
+            "al_better_share": float((a > p).mean()),
+            "al_worse_share": float((a < p).mean()),
+        }
+    return out
+
+
+def write_csv(results: dict, path: Path) -> None:
+    """One row per schedule × method × iteration × trial."""
+    num_candidates = None
+    rows = []
+    for name, res in results.items():
+        for method, run in res["runs"].items():
+            for it in run["iterations"]:
+                for t in range(len(it["test_return"])):
+                    j_mean = it.get("j_mean")
+                    if j_mean is not None:
+                        num_candidates = len(j_mean[t])
+                    rows.append(
+                        {
+                            "schedule": name,
+                            "method": method,
+                            "iteration": it["iteration"],
+                            "trial": t,
+                            "episodes_bought": it["episodes_bought"],
+                            "rewarded_transitions": it["rewarded_transitions"],
+                            "chosen": it["chosen"][t] if "chosen" in it else "",
+                            "sampling_epsilon": (
+                                it["sampling_epsilon"][t] if "sampling_epsilon" in it else ""
+                            ),
+                            **{m: it[m][t] for m in MEASURES},
+                            "j_mean": j_mean[t] if j_mean is not None else None,
+                        }
+                    )
+    j_cols = [f"j_mean_k{k + 1}" for k in range(num_candidates or 0)]
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        header = [c for c in rows[0] if c != "j_mean"] + j_cols
+        writer.writerow(header)
+        for row in rows:
+            j_mean = row.pop("j_mean")
+            writer.writerow(
+                [*row.values(), *(j_mean if j_mean is not None else [""] * len(j_cols))]
+            )
+
+
+def plot(results: dict, path: Path) -> None:
+    """Figure 8: mean ± s.e. over trials of both performance measures against iterations."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    panels = (("test_return", "performance, eq. 61 (test episodes)"), ("percent_optimal", ""))
+    styles = {"decreasing": "-", "fixed": "--"}
+    colours = {"AL": "tab:red", "PL": "tab:blue"}
+    for ax, (measure, label) in zip(axes, panels, strict=True):
+        for name, res in results.items():
+            for method, run in res["runs"].items():
+                its = run["iterations"]
+                stats = np.array([mean_se(it[measure]) for it in its])
+                x = np.array([it["iteration"] for it in its]) + (0.06 if method == "PL" else 0.0)
+                ax.errorbar(
+                    x,
+                    stats[:, 0],
+                    yerr=stats[:, 1],
+                    linestyle=styles.get(name, "-"),
+                    color=colours[method],
+                    marker="o",
+                    markersize=3,
+                    capsize=3,
+                    label=f"{method} ({name})",
+                )
+        ax.set_xlabel("iteration l (0: the initial policy pi_1)")
+        ax.set_ylabel(label or "exact expected return, % of the optimal policy")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def print_table(results: dict, args: Args, wall: float) -> None:
+    trials = args.trials
+    print(f"\nIterated chain walk: {trials} trials, mean ± s.e. over trials ({wall:.1f} s wall)")
+    for measure, title in (
+        ("test_return", "performance of pi_{l+1}, eq. 61 (50 test episodes of 50 steps)"),
+        ("percent_optimal", "exact expected return of pi_{l+1}, % of the optimal policy"),
+    ):
+        print(f"\n{title}")
+        iters = [it["iteration"] for it in next(iter(results.values()))["runs"]["AL"]["iterations"]]
+        print(f"{'schedule':<11} {'method':<6} " + " ".join(f"{'l=' + str(i):>15}" for i in iters))
+        for name, res in results.items():
+            for method, run in res["runs"].items():
+                cells = []
+                for it in run["iterations"]:
+                    m, se = mean_se(it[measure])
+                    cells.append(
+                        f"{m:8.4f}±{se:6.4f}"
+                        if measure != "percent_optimal"
+                        else f"{m:8.2f}±{se:6.2f}"
+                    )
+                print(f"{name:<11} {method:<6} " + " ".join(f"{c:>15}" for c in cells))
+    print(f"\nPaired two-tailed t-test, AL vs PL at iteration {args.iterations} ({trials} pairs)")
+    print(
+        f"{'schedule':<11} {'measure':<13} {'mean(AL-PL)':>12} {'t':>8} {'p':>10} "
+        f"{'AL>PL':>6} {'AL<PL':>6}"
+    )
+    for name, res in results.items():
+        for measure, t in res["t_tests"].items():
+            print(
+                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {t['t']:8.3f} "
+                f"{t['p']:10.3g} {t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
+            )
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
+    started = time.perf_counter()
+    results = {}
+    jobs = [(name, method) for name in names for method in METHODS]
+    for name, method in tqdm(jobs, desc="schedule × method"):
+        index = list(SCHEDULES).index(name)
+        run_seed = 1000 * args.seed + 100 * index  # shared by AL and PL: paired design
+        schedule = SCHEDULES[name][: args.iterations]
+        entry = results.setdefault(name, {"schedule": list(schedule), "runs": {}})
+        entry["runs"][method] = run_method(args, schedule, METHODS[method], run_seed)
+    for res in results.values():
+        res["t_tests"] = paired_tests(res["runs"])
+    wall = time.perf_counter() - started
+
+    print_table(results, args, wall)
+    payload = {"args": dataclasses.asdict(args), "wall_seconds": wall, "results": results}
+    (out / "chain_walk_api.json").write_text(json.dumps(payload))
+    write_csv(results, out / "chain_walk_api.csv")
+    plot(results, out / "fig8_performance.png")
+    print(f"wrote {out}/chain_walk_api.json, chain_walk_api.csv and fig8_performance.png")
+    return payload
+
+
+if __name__ == "__main__":
+    main()

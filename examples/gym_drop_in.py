@@ -1,0 +1,358 @@
+"""Active vs passive policy iteration on Gymnasium's CartPole-v1 through TorchRL (a drop-in demo).
+
+The library's selector and iteration loop are not tied to this project's environments: any
+TorchRL env with discrete actions works. Here the env is Gymnasium's ``CartPole-v1`` wrapped by
+``torchrl.envs.GymWrapper`` (the base class of ``GymEnv``) around a
+``gymnasium.vector.SyncVectorEnv`` of E copies with ``autoreset_mode=DISABLED``: one process,
+batch size ``[E]``, and TorchRL resets finished rows itself (``"_reset"``), so the terminal step
+keeps its true next observation. (``GymEnv("CartPole-v1", num_envs=E)`` in torchrl 0.14.1 builds
+an ``AsyncVectorEnv`` with E worker processes — about 11 s to start 4 of them here, and the
+reward-free batches need thousands — and under its NEXT_STEP auto-reset the terminal step's next
+observation comes back as zeros; gymnasium's own ``CartPoleVectorEnv`` is NEXT_STEP only, which
+GymWrapper refuses.)
+
+Observations are normalised by a TorchRL ``ObservationNorm`` transform,
+``s ↦ s / (2.4, 2.0, 0.21, 2.0)`` (cart position, cart velocity, pole angle, pole angular
+velocity: the position and angle limits of the task map to ±1, velocities to roughly ±1). The
+basis is :class:`~torch_api.basis.GaussianActionBasis` with centres on the grid
+``{-g, g}^4`` ∪ {0} in normalised units and ``psi_mode="single"`` (continuous states).
+
+CartPole pays +1 per step and terminates when the pole falls; an episode of N steps may end
+early. The library masks the steps after an episode's end and drops the bootstrap term of
+psi_hat where ``("next", "terminated")`` is set; :func:`check_episodes` verifies on the bought
+data that every episode's mask stops exactly at its first terminal step and that terminal next
+states lie outside the task's limits (the true next observation, not a reset one).
+
+Performance of pi_{l+1} after every iteration: the mean number of steps the pole stays up over
+test episodes of at most ``test_steps`` steps, with the policy's own ε-greedy rule and with its
+greedy version (ε = 0).
+
+    python examples/gym_drop_in.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import itertools
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+import torch  # noqa: E402
+from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from torch_api.basis import GaussianActionBasis  # noqa: E402
+from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
+from torch_api.iteration import ActivePolicyIteration  # noqa: E402
+from torch_api.policies import LinearQPolicy  # noqa: E402
+
+ENV_ID = "CartPole-v1"
+OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
+X_LIMIT, ANGLE_LIMIT = 2.4, 12 * 2 * math.pi / 360  # CartPole's termination limits (m, rad)
+METHODS = {"AL": "active", "PL": "passive"}
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the CartPole drop-in demo."""
+
+    trials: int = 8
+    """independent trials, all run as one batch"""
+    seed: int = 0
+    """run seed (shared by AL and PL: a paired design)"""
+    out_dir: str = "results/gym_drop_in"
+    """where the JSON, the CSV and the figure go"""
+    schedule: str = "10,10,6,6,6,2,2"
+    """rewarded episodes per iteration, comma-separated (its length is L)"""
+    iterations: int = 0
+    """run only the first L iterations of the schedule (0: all)"""
+    steps: int = 25
+    """N, steps per episode (an episode may end earlier when the pole falls)"""
+    gamma: float = 0.95
+    """discount γ"""
+    repeats: int = 5
+    """Z, J-values averaged into J'"""
+    lam: float = 1e-3
+    """λ, ridge regularisation"""
+    grid: float = 0.5
+    """Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin"""
+    tau: float = 0.75
+    """Gaussian kernel width τ in normalised units"""
+    test_episodes: int = 20
+    """test episodes per trial and iteration"""
+    test_steps: int = 200
+    """longest test episode (steps)"""
+    threads: int = 0
+    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+
+
+def parse_args(argv=None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for field in dataclasses.fields(Args):
+        parser.add_argument(
+            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
+        )
+    args = Args(**vars(parser.parse_args(argv)))
+    if args.trials < 2:
+        raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
+    return args
+
+
+def schedule_of(args: Args) -> tuple[int, ...]:
+    schedule = tuple(int(m) for m in args.schedule.split(","))
+    if args.iterations:
+        if not 1 <= args.iterations <= len(schedule):
+            raise ValueError(f"--iterations must lie in 1 … {len(schedule)}, got {args.iterations}")
+        schedule = schedule[: args.iterations]
+    return schedule
+
+
+def make_env(batch: int) -> TransformedEnv:
+    """E = ``batch`` CartPoles as one TorchRL env ``[E]`` with normalised observations."""
+    vector = gym.vector.SyncVectorEnv(
+        [lambda: gym.make(ENV_ID)] * batch, autoreset_mode=gym.vector.AutoresetMode.DISABLED
+    )
+    env = GymWrapper(vector, categorical_action_encoding=True)
+    norm = ObservationNorm(  # standard_normal: (s - loc) / scale (else s * scale + loc)
+        loc=torch.zeros(4),
+        scale=torch.tensor(OBS_SCALE),
+        in_keys=["observation"],
+        standard_normal=True,
+    )
+    return TransformedEnv(env, norm)
+
+
+def make_basis(args: Args) -> GaussianActionBasis:
+    corners = torch.tensor(list(itertools.product((-args.grid, args.grid), repeat=4)))
+    centers = torch.cat([corners, torch.zeros(1, 4)])  # [17, 4]
+    return GaussianActionBasis(centers=centers, tau=args.tau, num_actions=2)
+
+
+def check_episodes(episodes) -> dict:
+    """Check bought CartPole episodes ``[T, M, N]`` and summarise them.
+
+    Raises:
+        ValueError: a mask that does not stop at an episode's first terminal step, or a terminal
+            next state inside the task's limits (a reset observation in its place).
+    """
+    mask, terminated = episodes["mask"], episodes["next", "terminated"]
+    steps = mask.shape[-1]
+    first_end = torch.where(terminated.any(-1), terminated.long().argmax(-1), steps - 1)
+    expected = torch.arange(steps) <= first_end.unsqueeze(-1)
+    if not torch.equal(mask, expected):
+        raise ValueError("the mask does not end at the first terminal step of every episode")
+    final = episodes["next", "observation"][terminated & mask]  # normalised units
+    raw = final * torch.tensor(OBS_SCALE)
+    outside = (raw[:, 0].abs() > X_LIMIT) | (raw[:, 2].abs() > ANGLE_LIMIT)
+    if not outside.all():
+        raise ValueError(
+            f"{int((~outside).sum())} terminal next states lie inside CartPole's limits"
+        )
+    ended = terminated.any(-1)
+    return {
+        "episodes": int(math.prod(mask.shape[:-1])),
+        "transitions": int(mask.sum()),
+        "share_ended_early": float(ended.double().mean()),
+        "mean_length": float(mask.sum(-1).double().mean()),
+        "rewards_in_masked_steps": float(episodes[REWARD_KEY][mask].sum()),
+    }
+
+
+def make_evaluator(args: Args):
+    """The ``evaluate`` callback: mean steps balanced by pi_{l+1} (ε-greedy and greedy)."""
+    trials, m, n = args.trials, args.test_episodes, args.test_steps
+    env = make_env(trials * m)
+    generator = torch.Generator().manual_seed(args.seed)
+
+    def balanced(policy: LinearQPolicy, epsilon) -> torch.Tensor:
+        tester = LinearQPolicy(
+            basis=policy.basis, theta=policy.theta, epsilon=epsilon, generator=generator
+        )
+        episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
+        return (episodes[REWARD_KEY] * episodes["mask"]).sum(-1).double().mean(-1)  # [T]
+
+    def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
+        if seed is not None:  # the same test noise for AL and PL at iteration l
+            env.set_seed(int(seed))
+            generator.manual_seed(int(seed))
+        return {
+            "steps_balanced": balanced(policy, policy.epsilon).tolist(),
+            "steps_balanced_greedy": balanced(policy, 0.0).tolist(),
+        }
+
+    return evaluate
+
+
+def run_method(args: Args, mode: str) -> tuple[dict, dict]:
+    """One batched run of Algorithm 1 (all trials)."""
+    evaluate = make_evaluator(args)
+    api = ActivePolicyIteration(
+        env=make_env,
+        basis=make_basis(args),
+        schedule=schedule_of(args),
+        num_steps=args.steps,
+        gamma=args.gamma,
+        mode=mode,
+        lam=args.lam,
+        num_repeats=args.repeats,
+        psi_mode="single",
+        evaluate=evaluate,
+        num_trials=args.trials,
+        seed=args.seed,
+        keep_reward_free=False,
+    )
+    initial = evaluate(api.policy, args.seed + 1)
+    started = time.perf_counter()
+    history = api.run(progress=True)
+    seconds = time.perf_counter() - started
+    data_check = check_episodes(api.rewarded.episodes())
+    record = {
+        "mode": mode,
+        "seconds": seconds,
+        "iterations": [{"iteration": 0, "rewarded_transitions": 0, **initial}]
+        + [
+            {
+                "iteration": rec.iteration,
+                "episodes_bought": rec.episodes_bought,
+                "rewarded_transitions": rec.rewarded_transitions,
+                "reward_free_transitions": rec.reward_free_transitions,
+                "chosen": rec.chosen,
+                "sampling_epsilon": rec.sampling_rule,
+                "j_mean": rec.j_mean,
+                "seconds": rec.seconds,
+                **rec.performance,
+            }
+            for rec in history
+        ],
+    }
+    return record, data_check
+
+
+def mean_se(values) -> tuple[float, float]:
+    x = np.asarray(values, dtype=np.float64)
+    return float(x.mean()), float(x.std(ddof=1) / math.sqrt(x.size))
+
+
+def write_csv(runs: dict, path: Path) -> None:
+    """One row per method × iteration × trial."""
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(
+            [
+                "method",
+                "iteration",
+                "trial",
+                "rewarded_transitions",
+                "chosen",
+                "sampling_epsilon",
+                "steps_balanced",
+                "steps_balanced_greedy",
+            ]
+        )
+        for method, run in runs.items():
+            for it in run["iterations"]:
+                for t in range(len(it["steps_balanced"])):
+                    writer.writerow(
+                        [
+                            method,
+                            it["iteration"],
+                            t,
+                            it["rewarded_transitions"],
+                            it["chosen"][t] if "chosen" in it else "",
+                            it["sampling_epsilon"][t] if "sampling_epsilon" in it else "",
+                            it["steps_balanced"][t],
+                            it["steps_balanced_greedy"][t],
+                        ]
+                    )
+
+
+def plot(runs: dict, path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for ax, key in zip(axes, ("steps_balanced", "steps_balanced_greedy"), strict=True):
+        for method, run in runs.items():
+            its = run["iterations"]
+            stats = np.array([mean_se(it[key]) for it in its])
+            ax.errorbar(
+                [it["iteration"] for it in its],
+                stats[:, 0],
+                yerr=stats[:, 1],
+                marker="o",
+                capsize=3,
+                label=method,
+            )
+        rule = "greedy" if key.endswith("greedy") else "ε-greedy"
+        ax.set_title(f"{ENV_ID}: steps balanced by pi_(l+1) ({rule})", fontsize=9)
+        ax.set_xlabel("iteration l (0: the initial policy)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("mean ± s.e. over trials")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    runs, checks = {}, {}
+    for method, mode in tqdm(METHODS.items(), desc="method"):
+        runs[method], checks[method] = run_method(args, mode)
+    last = {m: np.asarray(r["iterations"][-1]["steps_balanced"]) for m, r in runs.items()}
+    test = scipy.stats.ttest_rel(last["AL"], last["PL"])
+    t_test = {"t": float(test.statistic), "p": float(test.pvalue)}
+    wall = time.perf_counter() - started
+
+    print(
+        f"\n{ENV_ID}: {args.trials} trials, steps balanced (of {args.test_steps}) by pi_(l+1), "
+        f"mean ± s.e. ({wall:.1f} s wall)"
+    )
+    print(
+        f"{'method':<7} {'rule':<9} "
+        + " ".join(f"{'l=' + str(it['iteration']):>12}" for it in runs["AL"]["iterations"])
+    )
+    for method, run in runs.items():
+        for key, rule in (("steps_balanced", "ε-greedy"), ("steps_balanced_greedy", "greedy")):
+            cells = [
+                f"{m:6.1f}±{se:5.1f}" for m, se in (mean_se(it[key]) for it in run["iterations"])
+            ]
+            print(f"{method:<7} {rule:<9} " + " ".join(f"{c:>12}" for c in cells))
+        chosen = [np.bincount(it["chosen"], minlength=4).tolist() for it in run["iterations"][1:]]
+        print(f"{method:<7} candidates chosen per iteration (counts of k = 1..4): {chosen}")
+    print(
+        f"paired t-test AL vs PL at the last iteration (ε-greedy): t = {t_test['t']:.3f}, "
+        f"p = {t_test['p']:.3g}"
+    )
+    for method, check in checks.items():
+        print(f"bought data ({method}): {check}")
+    payload = {
+        "args": dataclasses.asdict(args),
+        "wall_seconds": wall,
+        "runs": runs,
+        "t_test_last_iteration": t_test,
+        "data_checks": checks,
+    }
+    (out / "gym_drop_in.json").write_text(json.dumps(payload))
+    write_csv(runs, out / "gym_drop_in.csv")
+    plot(runs, out / "performance.png")
+    print(f"wrote {out}/gym_drop_in.json, gym_drop_in.csv and performance.png")
+    return payload
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,112 @@
+"""The example scripts end to end, each in a subprocess with a tiny budget (CleanRL-style).
+
+Each run must finish, and its JSON / CSV / PNG outputs must exist and hold finite numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.slow
+
+
+def _run(script: str, *args: str) -> str:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env["OMP_NUM_THREADS"] = "1"  # tiny tensors: one thread is faster (much, on a busy machine)
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / script), *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, f"{script} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    return done.stdout
+
+
+def _numbers(value):
+    """Every number inside a JSON value."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return
+    if isinstance(value, int | float):
+        yield value
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _numbers(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _numbers(v)
+
+
+def _check_json(path: Path) -> dict:
+    payload = json.loads(path.read_text())
+    numbers = list(_numbers(payload["results"] if "results" in payload else payload["runs"]))
+    assert numbers and all(math.isfinite(x) for x in numbers)
+    return payload
+
+
+def _check_png(path: Path) -> None:
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_chain_walk_one_step(tmp_path):
+    _run("chain_walk_one_step.py", "--trials", "2", "--out-dir", str(tmp_path))
+    payload = _check_json(tmp_path / "one_step.json")
+    assert len(payload["results"]) == 3
+    for name in ("fig3_true_error.png", "fig4_j_estimate.png", "fig5_obtained_error.png"):
+        _check_png(tmp_path / name)
+
+
+def test_chain_walk_api(tmp_path):
+    out = _run(
+        "chain_walk_api.py",
+        *("--trials", "2", "--iterations", "2", "--test-episodes", "3", "--test-steps", "10"),
+        *("--out-dir", str(tmp_path)),
+    )
+    assert "Paired two-tailed t-test" in out
+    payload = _check_json(tmp_path / "chain_walk_api.json")
+    for schedule in ("decreasing", "fixed"):
+        runs = payload["results"][schedule]["runs"]
+        assert set(runs) == {"AL", "PL"}
+        assert [it["iteration"] for it in runs["AL"]["iterations"]] == [0, 1, 2]
+        assert (
+            runs["AL"]["iterations"][-1]["rewarded_transitions"]
+            == sum(payload["results"][schedule]["schedule"]) * 10
+        )
+        assert all(c == 0 for c in runs["PL"]["iterations"][-1]["chosen"])
+    with (tmp_path / "chain_walk_api.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 2 * 3 * 2  # schedules × methods × iterations (0..2) × trials
+    for row in rows:
+        for key in ("test_return", "exact_return", "percent_optimal"):
+            assert math.isfinite(float(row[key]))
+    _check_png(tmp_path / "fig8_performance.png")
+
+
+def test_gym_drop_in(tmp_path):
+    _run(
+        "gym_drop_in.py",
+        *("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2"),
+        *("--test-episodes", "2", "--test-steps", "20", "--out-dir", str(tmp_path)),
+    )
+    payload = _check_json(tmp_path / "gym_drop_in.json")
+    assert set(payload["runs"]) == {"AL", "PL"}
+    for check in payload["data_checks"].values():
+        assert check["episodes"] == 2 * 4 and check["transitions"] > 0
+    with (tmp_path / "gym_drop_in.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * 3 * 2  # methods × iterations (0..2) × trials
+    assert all(math.isfinite(float(row["steps_balanced"])) for row in rows)
+    _check_png(tmp_path / "performance.png")

@@ -1,0 +1,203 @@
+"""Algorithm 1 (torch_api/iteration.py): weights, θ, seeding, passive mode, batched trials.
+
+References are written out by hand (NumPy loops over episodes and steps); only psi_hat rows are
+taken from the library (they have their own tests in test_psi.py / test_design.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
+from torch_api.basis import GaussianActionBasis
+from torch_api.design import build_design
+from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
+
+LAM = 1e-3
+N = 10
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: one intra-op thread is faster, and far faster on a busy machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _basis() -> GaussianActionBasis:
+    return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+
+
+def _api(*, mode="active", schedule=(3, 2), num_trials=None, seed=0, **kwargs):
+    return ActivePolicyIteration(
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
+        reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=12),
+        basis=_basis(),
+        schedule=schedule,
+        num_steps=N,
+        gamma=GAMMA,
+        mode=mode,
+        lam=LAM,
+        num_repeats=2,
+        psi_mode="grouped",
+        num_trials=num_trials,
+        seed=seed,
+        **kwargs,
+    )
+
+
+def _hand_weights(episodes, policy) -> np.ndarray:
+    """Per-decision weights ``Π_{n' <= n} pi(a|s) / pi~(a|s)`` by plain loops ``[M, N]``."""
+    obs = episodes["observation"]
+    target = policy.action_probs(obs).numpy()  # [M, N, A]
+    sample = episodes["sample_probs"].numpy()
+    action = episodes["action"].numpy()
+    mask = episodes["mask"].numpy()
+    w = np.zeros(action.shape)
+    for m in range(action.shape[0]):
+        prod = 1.0
+        for n in range(action.shape[1]):
+            if not mask[m, n]:
+                break
+            a = action[m, n]
+            prod *= target[m, n, a] / sample[m, n, a]
+            w[m, n] = prod
+    return w
+
+
+def _hand_theta(design, lam: float) -> np.ndarray:
+    """``(Â + λI)^{-1} b̂`` with ``Â = (1/n) Σ w x xᵀ``, ``b̂ = (1/n) Σ w x r`` (eq. 22-28)."""
+    x, w, r = design.x.numpy(), design.w.numpy(), design.reward.numpy()
+    n = int(design.mask.sum())
+    a_hat = sum(w[i] * np.outer(x[i], x[i]) for i in range(len(w))) / n
+    b_hat = sum(w[i] * x[i] * r[i] for i in range(len(w))) / n
+    return np.linalg.solve(a_hat + lam * np.eye(x.shape[1]), b_hat)
+
+
+@pytest.mark.parametrize("mode", ["passive", "active"])
+def test_weights_and_theta_follow_algorithm_1(mode):
+    """Step 3: θ_l is fitted on ALL rewarded episodes with weights towards pi_l."""
+    api = _api(mode=mode, schedule=(3, 3, 2))
+    for _ in range(3):
+        pi_l = api.policy  # the evaluation policy of the coming iteration
+        record = api.step()
+    episodes = api.rewarded.episodes()  # [ΣM, N]
+    assert episodes.shape == (8, N)
+    design = build_design(episodes, pi_l, api.psi)
+    w = design.w.reshape(8, N).numpy()
+    np.testing.assert_allclose(w, _hand_weights(episodes, pi_l), rtol=1e-12, atol=0)
+
+    mask = episodes["mask"].numpy()
+    newest = episodes["iteration"][:, 0].numpy() == 3
+    own = newest & (episodes["policy_id"][:, 0].numpy() == 0)  # collected by pi_l itself
+    if mode == "passive":
+        assert own.sum() == 2
+    np.testing.assert_array_equal(w[own][mask[own]], 1.0)
+    older = ~newest
+    assert not np.allclose(w[older][mask[older]], 1.0)  # earlier sets are reweighted to pi_l
+    assert record.chosen == 0 or mode == "active"
+
+    np.testing.assert_allclose(api.theta.numpy(), _hand_theta(design, LAM), rtol=1e-8, atol=1e-10)
+
+
+def test_same_seed_same_history():
+    runs = [_api(num_trials=3, schedule=(3, 2, 1), seed=5) for _ in range(2)]
+    histories = [api.run() for api in runs]
+    for a, b in zip(*histories, strict=True):
+        assert a.theta == b.theta
+        assert a.chosen == b.chosen
+        assert a.j_mean == b.j_mean
+        assert a.j_all == b.j_all
+        assert a.sampling_rule == b.sampling_rule
+    assert torch.equal(runs[0].theta, runs[1].theta)
+    other = _api(num_trials=3, schedule=(3, 2, 1), seed=6).run()
+    assert other[-1].theta != histories[0][-1].theta
+
+
+def test_passive_mode_never_calls_the_selector(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("the selector was called in passive mode")
+
+    monkeypatch.setattr(SamplingPolicySelector, "select", refuse)
+    monkeypatch.setattr(SamplingPolicySelector, "collect", refuse)
+    api = ActivePolicyIteration(
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
+        reward_free_env=lambda e: refuse(),  # building a reward-free env is an error too
+        basis=_basis(),
+        schedule=(3, 2),
+        num_steps=N,
+        gamma=GAMMA,
+        mode="passive",
+        psi_mode="grouped",
+        num_trials=2,
+    )
+    history = api.run()
+    assert len(api.reward_free) == 0
+    for record in history:
+        assert record.reward_free_transitions == 0
+        assert record.j_mean is None and record.j_all is None
+        assert record.chosen == [0, 0]
+    assert api.rewarded_transitions == 5 * N
+
+
+def test_batched_trials_shapes_and_counts():
+    trials, schedule = 3, (3, 2, 1)
+    api = _api(num_trials=trials, schedule=schedule)
+    history = api.run()
+    assert api.theta.shape == (trials, 12)
+    assert api.policy.param_dims == (trials,)
+    assert api.rewarded.episodes().shape == (trials, sum(schedule), N)
+    k = 4  # the paper's candidates ε_l + (0, 0.15, 0.5, 0.85)
+    bought = 0
+    for record, m in zip(history, schedule, strict=True):
+        bought += m * N
+        assert record.rewarded_transitions == bought
+        assert record.episodes_bought == m
+        assert len(record.chosen) == trials
+        assert all(0 <= c < k for c in record.chosen)
+        assert np.asarray(record.theta).shape == (trials, 12)
+        assert np.asarray(record.j_mean).shape == (trials, k)
+        assert np.asarray(record.j_all).shape == (trials, 2, k)
+        assert record.chosen == np.asarray(record.j_mean).argmin(-1).tolist()
+        assert record.reward_free_transitions == 2 * k * N * sum(schedule[: record.iteration])
+    assert api.rewarded_transitions == sum(schedule) * N
+    # the bought episodes of trial t were sampled with its own chosen candidate
+    ids = api.rewarded.episodes()["policy_id"][:, :, 0]  # [T, ΣM]
+    offsets = np.cumsum((0, *schedule))
+    for record in history:
+        start = offsets[record.iteration - 1]
+        assert ids[:, start].tolist() == record.chosen
+
+
+def test_batched_trials_equal_one_at_a_time_runs_with_the_same_seeds():
+    """Each trial draws from its own streams: T trials in one batch = T separate runs."""
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+
+    def run(seeds):
+        api = ActivePolicyIteration(
+            env=lambda e: ChainWalkEnv(batch_size=e),
+            basis=basis,
+            schedule=(5, 3, 2),
+            num_steps=10,
+            gamma=GAMMA,
+            psi_mode="grouped",
+            num_repeats=3,
+            num_trials=len(seeds),
+            trial_seeds=seeds,
+        )
+        api.run()
+        return api
+
+    seeds = [11, 22, 33]
+    batched = run(seeds)
+    for t, seed in enumerate(seeds):
+        alone = run([seed])
+        assert torch.equal(alone.theta[0], batched.theta[t])
+        for r_alone, r_batched in zip(alone.history, batched.history, strict=True):
+            assert r_alone.chosen[0] == r_batched.chosen[t]
+            assert r_alone.j_mean[0] == r_batched.j_mean[t]
