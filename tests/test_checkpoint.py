@@ -60,7 +60,7 @@ def test_resume_reproduces_the_uninterrupted_run(tmp_path, interrupt):
 def test_checkpoint_of_other_settings_is_refused(tmp_path):
     path = tmp_path / "run.pt"
     _api(path).step()
-    with pytest.raises(ValueError, match=r"other settings: \['num_trials'\]"):
+    with pytest.raises(ValueError, match=r"other settings: \['num_trials', 'trial_seeds'\]"):
         _api(trials=2).load(path)
     with pytest.raises(ValueError, match=r"other settings: \['mode'\]"):
         _api(mode="passive").load(path)

@@ -109,3 +109,31 @@ def test_batched_and_candidate_by_candidate_collection_agree_in_shape_and_tags()
         # the recorded sampling probabilities are those of the tagged candidate
         probs = eps["sample_probs"][:, 1]
         assert torch.allclose(probs, torch.full_like(probs, 0.5))
+
+
+def test_trial_chunks_give_the_same_j_as_one_batch():
+    basis, psi, _ = _setup()
+    theta = torch.randn(5, 12, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    pi = LinearQPolicy(basis=basis, theta=theta, epsilon=0.15)
+    cands = [pi.with_rule(epsilon=e) for e in (0.15, 0.65)]
+
+    def select(max_bytes):
+        selector = SamplingPolicySelector(
+            env=lambda e: ChainWalkEnv(batch_size=e, seed=3),
+            psi=psi,
+            num_episodes=3,
+            num_steps=5,
+            num_repeats=2,
+            max_design_bytes=max_bytes,
+        )
+        for c in cands:
+            c.generator.manual_seed(0)
+        return selector, selector.select(pi, cands)
+
+    one_sel, one = select(2**40)
+    chunked_sel, chunked = select(1)  # one trial per chunk
+    assert len(chunked_sel._trial_chunks(chunked.episodes, None)) == 5
+    assert len(one_sel._trial_chunks(one.episodes, None)) == 1
+    assert torch.equal(one.episodes["observation"], chunked.episodes["observation"])
+    torch.testing.assert_close(chunked.j_all, one.j_all, rtol=1e-12, atol=0)
+    assert torch.equal(chunked.index, one.index) and chunked.j_all.shape == (5, 2, 2)

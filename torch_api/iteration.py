@@ -124,7 +124,10 @@ class ActivePolicyIteration:
             ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
         beta: softmax temperature.
         evaluate: optional callback ``(policy, seed) -> dict`` measuring pi_{l+1} after every
-            iteration; ``seed`` is derived from (seed, l) so that a resumed run measures alike.
+            iteration. The policy samples from streams seeded from (seed, l) (one per trial with
+            ``trial_seeds``); ``seed`` is derived from (seed, l) too, for the callback's own
+            environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
+            per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
         seed: seed of the run. Each iteration re-seeds the policies' stream and the
             environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
@@ -243,6 +246,11 @@ class ActivePolicyIteration:
         theta = torch.ones(basis.num_features, dtype=torch.float64)
         if initial_theta is not None:
             theta = torch.as_tensor(initial_theta, dtype=torch.float64)
+            if theta.shape != (basis.num_features,):
+                raise ValueError(
+                    f"initial_theta must have shape [{basis.num_features}] (the basis width), "
+                    f"got {tuple(theta.shape)}"
+                )
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.iteration = 0  # iterations completed
         self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))  # per trial
@@ -309,6 +317,21 @@ class ActivePolicyIteration:
         if self.trial_seeds is None:
             raise ValueError("block_seeds needs a run with num_trials")
         return [derive_seed(s, iteration, stream) for s in self.trial_seeds]
+
+    def _evaluation_policy(self, iteration: int) -> tuple[LinearQPolicy, int]:
+        """pi_{l+1} with sampling streams of its own, and the evaluation seed of iteration l.
+
+        The streams depend on (seed, l) alone, so a resumed run measures what an
+        uninterrupted one would.
+        """
+        seed = derive_seed(self.seed, iteration, "evaluation")
+        policy = self.policy.with_rule(**self.policy._rule())
+        policy.generator = torch.Generator().manual_seed(seed)
+        if self.trial_seeds is not None:
+            policy.block_generators = [
+                torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "evaluation")
+            ]
+        return policy, seed
 
     def _seed_env(self, env: EnvBase, iteration: int, stream: str) -> None:
         if self.trial_seeds is not None and hasattr(env, "set_block_seeds"):
@@ -398,7 +421,7 @@ class ActivePolicyIteration:
         seconds = pending["seconds"] + time.perf_counter() - started
         performance = None
         if self.evaluate is not None:
-            performance = self.evaluate(self.policy, derive_seed(self.seed, l_now, "evaluation"))
+            performance = self.evaluate(*self._evaluation_policy(l_now))
         record = IterationRecord(
             iteration=l_now,
             chosen=pending["chosen"].tolist(),

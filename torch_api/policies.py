@@ -121,8 +121,9 @@ class ActionProbsPolicy(TensorDictModuleBase):
         self.in_keys = [observation_key]
         self.out_keys = [action_key, probs_key]
 
-    def _copy_streams(self, other: ActionProbsPolicy) -> ActionProbsPolicy:
-        other.block_generators = self.block_generators
+    def _copy_streams(self, other: ActionProbsPolicy, trials: slice | None = None):
+        blocks = self.block_generators
+        other.block_generators = blocks if blocks is None or trials is None else blocks[trials]
         return other
 
     def _io_kwargs(self) -> dict:
@@ -230,6 +231,15 @@ class TabularPolicy(ActionProbsPolicy):
     @property
     def param_dims(self) -> tuple[int, ...]:
         return tuple(self.table.shape[:-2])
+
+    def trial_slice(self, trials: slice) -> TabularPolicy:
+        """The policy of some trials only (the first parameter dim sliced)."""
+        return self._copy_streams(
+            TabularPolicy(
+                table=self.table[trials], state_index=self.state_index, **self._io_kwargs()
+            ),
+            trials,
+        )
 
     def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
         index = self.state_index(obs).long()
@@ -349,6 +359,17 @@ class LinearQPolicy(ActionProbsPolicy):
     def param_dims(self) -> tuple[int, ...]:
         return tuple(self.theta.shape[:-1])
 
+    def _rule(self) -> dict:
+        return {"beta": self.beta} if self.beta is not None else {"epsilon": self.epsilon}
+
+    def trial_slice(self, trials: slice) -> LinearQPolicy:
+        """The policy of some trials only (θ's first dim, and a per-trial ε or β, sliced)."""
+        rule = {k: v[trials] if v.ndim else v for k, v in self._rule().items()}
+        return self._copy_streams(
+            LinearQPolicy(basis=self.basis, theta=self.theta[trials], **rule, **self._io_kwargs()),
+            trials,
+        )
+
     def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
         q = self.q_values(obs)
         rule = self.beta if self.beta is not None else self.epsilon
@@ -360,7 +381,7 @@ class LinearQPolicy(ActionProbsPolicy):
 
     def to_device(self, device) -> LinearQPolicy:
         """A copy whose θ lives on ``device`` (the sampling generator stays where it is)."""
-        rule = {"beta": self.beta} if self.beta is not None else {"epsilon": self.epsilon}
+        rule = self._rule()
         return self._copy_streams(
             LinearQPolicy(
                 basis=self.basis, theta=self.theta.to(device), **rule, **self._io_kwargs()

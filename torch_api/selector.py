@@ -185,6 +185,9 @@ class SamplingPolicySelector:
         generator: random stream of the sampling (default: the candidates' own).
         device: where psi_hat and J are computed (default: where the episodes are); rollouts
             stay on the environment's device.
+        max_design_bytes: J is computed for as many trials at a time as keep the candidates'
+            psi_hat design under about this many bytes (memory, not speed, is the limit at
+            hundreds of trials).
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -212,6 +215,7 @@ class SamplingPolicySelector:
         lam: float = DEFAULT_LAMBDA,
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
+        max_design_bytes: int = 2**29,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -231,6 +235,7 @@ class SamplingPolicySelector:
         self.lam = float(lam)
         self.generator = generator
         self.device = None if device is None else torch.device(device)
+        self.max_design_bytes = int(max_design_bytes)
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
@@ -290,6 +295,24 @@ class SamplingPolicySelector:
         ]
         return torch.stack(repeats)
 
+    def _trial_chunks(self, episodes: TensorDictBase, earlier: TensorDictBase | None) -> list:
+        """Slices of the trial dim such that each chunk's design stays under the byte budget."""
+        trials, z, k, m, n = episodes.shape
+        earlier_episodes = 0 if earlier is None else earlier.shape[-2]
+        per_trial = z * k * (m + earlier_episodes) * n * self.psi.basis.num_features * 8 * 3
+        size = max(1, self.max_design_bytes // per_trial)
+        return [slice(a, min(a + size, trials)) for a in range(0, trials, size)]
+
+    def _j_chunk(self, episodes, earlier, policy, trials: slice | None) -> torch.Tensor:
+        if trials is not None:
+            episodes, policy = episodes[trials], policy.trial_slice(trials)
+            earlier = None if earlier is None else earlier[trials]
+        if self.device is not None:
+            episodes = episodes.to(self.device)
+            earlier = None if earlier is None else earlier.to(self.device)
+            policy = policy.to_device(self.device)
+        return j_values(episodes, earlier, policy, self.psi, self.lam).cpu()
+
     def select(
         self,
         evaluation_policy,
@@ -309,12 +332,16 @@ class SamplingPolicySelector:
         if not candidates:
             raise ValueError("candidates must not be empty")
         episodes = self.collect(candidates, iteration)
-        data, earlier, policy = episodes, earlier_episodes, evaluation_policy
-        if self.device is not None:
-            data = episodes.to(self.device)
-            earlier = None if earlier is None else earlier.to(self.device)
-            policy = policy.to_device(self.device)
-        j_all = j_values(data, earlier, policy, self.psi, self.lam).cpu()
+        j_all = (
+            torch.cat(
+                [
+                    self._j_chunk(episodes, earlier_episodes, evaluation_policy, trials)
+                    for trials in self._trial_chunks(episodes, earlier_episodes)
+                ]
+            )
+            if tuple(getattr(evaluation_policy, "param_dims", ()))
+            else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None)
+        )
         j_mean = j_all.mean(-2)
         return Selection(
             index=torch.argmin(j_mean, dim=-1),

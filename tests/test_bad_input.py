@@ -1,0 +1,99 @@
+"""Every row of the README's bad-input table not covered next to its module: a clear error."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
+from torch_api.basis import GaussianActionBasis
+from torch_api.data import EpisodeBuffer
+from torch_api.design import build_design
+from torch_api.iteration import ActivePolicyIteration
+from torch_api.policies import TabularPolicy
+from torch_api.psi import PsiHat
+
+
+def _basis():
+    return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+
+
+def _api(**overrides):
+    args = {
+        "env": lambda e: ChainWalkEnv(batch_size=e),
+        "basis": _basis(),
+        "schedule": (2, 2),
+        "num_steps": 5,
+        "gamma": 0.9,
+        "psi_mode": "grouped",
+        "num_trials": 2,
+    } | overrides
+    return ActivePolicyIteration(**args)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"lam": 0.0}, "lam must be > 0, got 0.0"),
+        ({"lam": -1e-3}, "lam must be > 0, got -0.001"),
+        ({"gamma": 0.0}, r"gamma must lie in \(0, 1\], got 0.0"),
+        ({"gamma": 1.5}, r"gamma must lie in \(0, 1\], got 1.5"),
+        ({"schedule": (3, 0, 2)}, r"episode counts >= 1, got \[3, 0, 2\]"),
+        ({"schedule": ()}, "non-empty"),
+        ({"epsilon_schedule": lambda l: 1.5}, r"epsilon_schedule\(1\) = 1.5 lies outside \[0, 1\]"),
+        ({"epsilon_schedule": lambda l: -0.1}, r"epsilon_schedule\(1\) = -0.1 lies outside"),
+        ({"initial_theta": torch.ones(11)}, r"initial_theta must have shape \[12\]"),
+        ({"mode": "greedy"}, "mode must be one of"),
+        ({"trial_seeds": [1, 2, 3]}, "trial_seeds must hold num_trials = 2 seeds, got 3"),
+        ({"num_trials": 0}, "num_trials must be >= 1, got 0"),
+        ({"env": ChainWalkEnv(batch_size=4)}, "num_trials needs env as a callable"),
+    ],
+)
+def test_api_arguments_are_checked_early(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        _api(**overrides)
+
+
+def test_collapsed_importance_weights_warn_with_the_effective_sample_size():
+    basis = _basis()
+    psi = PsiHat(basis=basis, gamma=0.9, mode="grouped")
+
+    def index(obs):
+        return obs[..., 0].round().long() - 1
+
+    uniform = TabularPolicy(table=torch.full((10, 2), 0.5, dtype=torch.float64), state_index=index)
+    env = ChainWalkEnv(batch_size=40, seed=0)
+    td = env.rollout(80, uniform, break_when_any_done=False)
+    episodes = TensorDict(
+        {
+            "observation": td["observation"],
+            "action": td["action"],
+            "sample_probs": td["sample_probs"],
+            ("next", "observation"): td["next", "observation"],
+            "mask": torch.ones(40, 80, dtype=torch.bool),
+        },
+        batch_size=[40, 80],
+    )
+    # an almost deterministic evaluation policy: products of up to 80 ratios of 1.998 or 0.002
+    table = torch.tensor([[0.001, 0.999]] * 10, dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match=r"effective sample size \d+\.\d\d of n = 3200"):
+        build_design(episodes, TabularPolicy(table=table, state_index=index), psi)
+
+
+def test_buffers_refuse_episodes_of_other_trials():
+    def episodes(trials):
+        return TensorDict(
+            {
+                "observation": torch.ones(trials, 2, 3, 1),
+                "action": torch.zeros(trials, 2, 3, dtype=torch.long),
+                "sample_probs": torch.full((trials, 2, 3, 2), 0.5, dtype=torch.float64),
+                ("next", "observation"): torch.ones(trials, 2, 3, 1),
+                "mask": torch.ones(trials, 2, 3, dtype=torch.bool),
+            },
+            batch_size=[trials, 2, 3],
+        )
+
+    buffer = EpisodeBuffer(rewarded=False)
+    buffer.extend(episodes(4))
+    assert buffer.episodes().shape == (4, 2, 3)
+    with pytest.raises(ValueError, match=r"episodes of trials \(4,\), got \(5,\)"):
+        buffer.extend(episodes(5))
