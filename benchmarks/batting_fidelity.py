@@ -1,10 +1,13 @@
 """Fidelity of the batting integration scheme (SPEC section 5, "Integration and fidelity").
 
 Runs all 2^10 = 1024 open-loop action sequences (N = 10, A = 2) without noise, once with the
-env's scheme (coarse RK4 swing, fine impact) and once with a uniform Euler step ``ref_factor``
-times finer than the scheme's fine step, and compares: hit/miss agreement, first-hit step
-agreement, carry error (mean, max, 95 % quantile) over sequences that hit in both, and the
-physics steps spent per episode. A uniform run at the scheme's own fine step is shown too.
+env's scheme (coarse RK4 swing, fine impact window) and once with a uniform Euler step
+``ref_factor`` times finer than the scheme's fine step (or ``--ref-dt``), and compares: hit/miss
+agreement, first-hit step agreement, carry error (mean, max, 95 % quantile) over sequences that
+hit in both, and the physics steps spent per episode (coarse RK4 steps = steps - fine). A uniform
+run at the scheme's own fine step is shown too, and with ``--baseline FILE`` the scheme of
+another version of envs/batting.py (e.g. ``git show HEAD~1:envs/batting.py``), for a
+before/after table against one reference.
 
     python benchmarks/batting_fidelity.py --out results/batting_fidelity.json
 """
@@ -12,6 +15,7 @@ physics steps spent per episode. A uniform run at the scheme's own fine step is 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import itertools
 import json
 import time
@@ -20,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.batting import ACTION_TORQUES, FINE_DT, MAX_STEPS, BattingSimulator
+from envs.batting import ACTION_TORQUES, FINE_DT, MAX_STEPS, XML_PATH, BattingSimulator
 
 
 @dataclass
@@ -29,6 +33,8 @@ class Args:
 
     out: str = "results/batting_fidelity.json"  # where the JSON table goes
     ref_factor: int = 4  # the reference step is fine_dt / ref_factor
+    ref_dt: float | None = None  # (s) the reference step, if not fine_dt / ref_factor
+    baseline: str | None = None  # another envs/batting.py whose scheme is compared too
     nthread: int | None = None  # MuJoCo threads (None: all cores)
     skip_uniform_fine: bool = False  # leave out the uniform run at the scheme's fine step
 
@@ -38,9 +44,18 @@ def all_sequences(n_steps: int = MAX_STEPS) -> np.ndarray:
     return np.array(list(itertools.product((0, 1), repeat=n_steps)), dtype=np.int64)
 
 
-def run_sequences(seqs: np.ndarray, **sim_kwargs) -> dict:
+def load_baseline(path: str) -> type:
+    """BattingSimulator class of another version of envs/batting.py, on this MJCF file."""
+    spec = importlib.util.spec_from_file_location("batting_baseline", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.BattingSimulator.__init__.__kwdefaults__["xml_path"] = XML_PATH
+    return module.BattingSimulator
+
+
+def run_sequences(seqs: np.ndarray, simulator: type = BattingSimulator, **sim_kwargs) -> dict:
     """Noiseless episodes of the given sequences: carry, first-hit step and physics steps."""
-    sim = BattingSimulator(num_envs=len(seqs), **sim_kwargs)
+    sim = simulator(num_envs=len(seqs), **sim_kwargs)
     sim.reset()
     torques = np.asarray(ACTION_TORQUES)
     hit_step = np.full(len(seqs), -1)
@@ -77,8 +92,12 @@ def compare(run: dict, ref: dict) -> dict:
 
 def main(args: Args) -> dict:
     seqs = all_sequences()
-    ref_dt = FINE_DT / args.ref_factor
-    runs = {"scheme (adaptive)": run_sequences(seqs, nthread=args.nthread)}
+    ref_dt = FINE_DT / args.ref_factor if args.ref_dt is None else args.ref_dt
+    runs = {}
+    if args.baseline:
+        baseline = load_baseline(args.baseline)
+        runs["baseline scheme"] = run_sequences(seqs, baseline, nthread=args.nthread)
+    runs["scheme (adaptive)"] = run_sequences(seqs, nthread=args.nthread)
     if not args.skip_uniform_fine:
         runs[f"uniform {FINE_DT * 1e3:g} ms"] = run_sequences(
             seqs, scheme="uniform", nthread=args.nthread
@@ -115,6 +134,8 @@ def parse_args(argv: list[str] | None = None) -> Args:
     defaults = Args()
     parser.add_argument("--out", default=defaults.out)
     parser.add_argument("--ref-factor", type=int, default=defaults.ref_factor)
+    parser.add_argument("--ref-dt", type=float, default=defaults.ref_dt)
+    parser.add_argument("--baseline", default=defaults.baseline)
     parser.add_argument("--nthread", type=int, default=defaults.nthread)
     parser.add_argument("--skip-uniform-fine", action="store_true")
     return Args(**vars(parser.parse_args(argv)))

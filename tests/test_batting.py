@@ -27,7 +27,8 @@ from envs.batting import (
 
 # MuJoCo's joint limits are soft (solreflimit time constant 20 ms, which the 7.5 ms RK4 swing
 # needs: at least 2 x timestep): a joint slamming into its stop at 10-20 rad/s overshoots by
-# about v x tau / e ~ 0.1 rad (measured max: phi1 0.092, phi2 0.123 rad over 960 random steps).
+# about v x tau / e ~ 0.1 rad (measured max: phi1 0.092, phi2 0.123 rad over 960 random steps;
+# phi1 0.082, phi2 0.147 rad over 10240 random steps, at control-step boundaries).
 LIMIT_TOL = 0.15  # (rad), 8.6 deg
 
 
@@ -188,11 +189,12 @@ def replay_fine(torques: np.ndarray, fine_dt: float) -> tuple[int, float]:
 def test_replayed_carry_equals_look_ahead(episodes):
     """Replaying an episode's actions and noise at a uniform fine step gives the same carry.
 
-    Tolerance: benchmarks/batting_fidelity.py measured the scheme (7.5 ms RK4 swing, 0.25 ms
-    impact) against a uniform 0.0625 ms step over all 1024 noiseless sequences: carry errors
-    mean 0.18 m, 95 % within 0.47 m, max 0.65 m; a uniform 0.25 ms run differs from that
-    reference by up to 0.47 m. So the scheme and a 0.25 ms replay may differ by up to about
-    0.65 + 0.47 m: we allow 1.0 m plus 5 % of the carry, and require the median error below 0.3 m.
+    Tolerance: benchmarks/batting_fidelity.py measured the scheme (7.5 ms RK4 swing, 0.125 ms
+    impact window) against a uniform 0.0625 ms step over all 1024 noiseless sequences: carry
+    errors mean 0.08 m, 95 % within 0.23 m, max 0.64 m (the previous scheme, 0.25 ms: 0.18,
+    0.47, 0.65 m); a uniform 0.25 ms run differs from that reference by up to 0.47 m, a 0.125 ms
+    one by less. So the scheme and a 0.125 ms replay may differ by up to about 0.64 + 0.47 m: we
+    allow 1.0 m plus 5 % of the carry, and require the median error below 0.3 m.
     Grazing hits (carry < 1 m) are skipped: whether they touch at all is within integration noise.
     """
     env, (_, _, rewards, hits, torques) = episodes
@@ -207,6 +209,47 @@ def test_replayed_carry_equals_look_ahead(episodes):
         errors.append(abs(simulated - expected))
         assert errors[-1] < 1.0 + 0.05 * expected, (i, simulated, expected)
     assert np.median(errors) < 0.3, errors
+
+
+def test_predicted_gap_matches_distance_sensor():
+    """The scheme's bat-ball gap (numpy geometry) equals MuJoCo's distance sensor."""
+    sim = BattingSimulator(num_envs=1, nthread=1)
+    model, data = sim.fine_model, mujoco.MjData(sim.fine_model)
+    adr = model.sensor_adr[model.sensor("bat_ball_dist").id]
+    cutoff = model.sensor_cutoff[model.sensor("bat_ball_dist").id]
+    rng = np.random.default_rng(0)
+    compared = 0
+    for _ in range(300):
+        mujoco.mj_setState(model, data, sim._initial_state, mujoco.mjtState.mjSTATE_INTEGRATION)
+        data.qpos[:2] = rng.uniform([-0.2, -1.0], [1.0, 1.0])
+        data.qpos[2:5] += rng.uniform(-0.1, 0.1, 3)
+        mujoco.mj_forward(model, data)
+        expected = data.sensordata[adr]
+        got = sim.bat_ball_gap(data.qpos[0], data.qpos[1], data.qpos[2:5])
+        if expected < cutoff:
+            assert abs(got - expected) < 1e-9
+            compared += 1
+    assert compared > 50
+
+
+def test_coarse_steps_freeze_the_ball_and_fine_steps_stay_few():
+    """Far from the ball only coarse steps run and the ball stays on its pin; a swing that hits
+    spends a few fine intervals (of 7.5 ms), not whole control steps."""
+    sim = BattingSimulator(num_envs=2, nthread=1)
+    sim.reset()
+    ball = sim.ball_position()
+    torques = np.asarray(ACTION_TORQUES)
+    for t in range(MAX_STEPS):
+        action = np.array([0, int(t >= 3)])  # cock throughout; cock three steps, then swing
+        sim.step(torques[action])
+    np.testing.assert_array_equal(sim.ball_position()[0], ball[0])
+    assert sim.fine_steps[0] == 0 and sim.physics_steps[0] == MAX_STEPS * sim.n_coarse
+    assert sim.hit.tolist() == [False, True] and sim.carry[1] > 5.0
+    assert 0 < sim.fine_steps[1] <= 4 * sim.n_sub
+    with pytest.raises(ValueError, match="margin"):
+        BattingSimulator(num_envs=1, margin=0.0)
+    with pytest.raises(ValueError, match="divide"):
+        BattingSimulator(num_envs=1, coarse_dt=0.0075, fine_dt=0.003)
 
 
 def test_same_seed_same_episode_different_seed_differs():
@@ -255,3 +298,18 @@ def test_gymnasium_env():
         assert not terminated and env.observation_space.contains(obs)
     assert steps == MAX_STEPS and total > 0 and info["hit"]
     assert isinstance(BattingGymEnv().reset(seed=1)[0], np.ndarray)
+
+
+def test_block_seeds_give_each_block_the_stream_of_a_lone_env():
+    """Per-trial streams: block b of a batched env draws what a lone env of that seed draws."""
+    batched = BattingEnv(batch_size=6, seed=0)
+    batched.set_block_seeds([11, 22, 33])
+    noise = batched.sample_noise(6)
+    for block, seed in enumerate((11, 22, 33)):
+        alone = BattingEnv(batch_size=2, seed=0)
+        alone.set_block_seeds([seed])
+        assert torch.equal(noise[2 * block : 2 * block + 2], alone.sample_noise(2))
+    batched.set_seed(5)  # back to one stream
+    assert batched.block_rngs is None
+    with pytest.raises(ValueError, match="equal blocks"):
+        batched.set_block_seeds([1, 2, 3, 4])
