@@ -10,16 +10,18 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 @pytest.mark.parametrize(
-    ("script", "expected"),
+    ("command", "expected"),
     [
-        ("bench_j.py", "| n | batched J | floor (2 matmuls) |"),
-        ("bench_scaling.py", "Order of growth: wall s ~ trials^"),
+        (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
+        (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
+        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "Wall / raw physics"),
     ],
 )
-def test_benchmark_runs_quick(script, expected, tmp_path):
+def test_benchmark_runs_quick(command, expected, tmp_path):
     out = tmp_path / "bench.json"
+    script, *flags = command
     done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / script), "--quick", "--out", str(out)],
+        [sys.executable, str(BENCHMARKS / script), *flags, "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=300,

@@ -1,0 +1,177 @@
+"""Where the time of an active batting run goes: physics, env Python, TorchRL/collection, algebra.
+
+Runs ``ActivePolicyIteration`` (mode active, the 'decreasing' schedule, Z = 5, K = 4) on T
+batched batting trials and splits its wall time, with timers wrapped around:
+
+* physics: MuJoCo's native rollouts inside the env (``BattingSimulator._run``), also counted in
+  coarse and fine physics steps;
+* env Python: the rest of ``BattingEnv._reset`` / ``_step`` (noise, gap prediction, look-ahead,
+  TensorDicts);
+* algebra: psi_hat, importance weights, J and the weighted solves (``build_design``,
+  ``j_criterion``, ``weighted_ridge``);
+* TorchRL / collection: the remainder (``env.rollout``, policies, buffers, checks).
+
+Next to it, in the same run, the same numbers of coarse and fine physics steps done by raw
+MuJoCo (``mujoco.batch.Batch`` on 2 threads, 64 simulations; and a 1-thread ``mj_step`` loop):
+the physics floor of the run.
+
+    python benchmarks/profile_batting.py --trials 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+from bench_batting_env import raw_batch_run, raw_run
+
+import torch_api.design
+import torch_api.iteration
+import torch_api.selector
+import torch_api.solve
+from envs import batting
+from envs.batting import BattingEnv
+from torch_api.basis import GaussianActionBasis
+from torch_api.iteration import ActivePolicyIteration
+
+DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
+TIMERS: dict[str, float] = defaultdict(float)
+_DEPTH = {"n": 0}  # algebra calls nest (j_values -> build_design): time the outermost only
+
+
+@contextmanager
+def timed(name: str):
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        TIMERS[name] += time.perf_counter() - start
+
+
+def wrap(owner, attr: str, name: str, *, outermost: bool = False) -> None:
+    original = getattr(owner, attr)
+
+    def wrapper(*args, **kwargs):
+        if outermost and _DEPTH["n"]:
+            return original(*args, **kwargs)
+        _DEPTH["n"] += outermost
+        try:
+            with timed(name):
+                return original(*args, **kwargs)
+        finally:
+            _DEPTH["n"] -= outermost
+
+    setattr(owner, attr, wrapper)
+
+
+STEPS = {"coarse": 0, "fine": 0}
+
+
+def count_physics() -> None:
+    """Time ``BattingSimulator._run`` and count the physics steps it advances."""
+    original = batting.BattingSimulator._run
+
+    def run(self, batch, ids, torque, nstep, *args, **kwargs):
+        STEPS["fine" if batch is self.fine else "coarse"] += len(ids) * nstep
+        with timed("physics"):
+            return original(self, batch, ids, torque, nstep, *args, **kwargs)
+
+    batting.BattingSimulator._run = run
+
+
+def instrument() -> None:
+    count_physics()
+    wrap(BattingEnv, "_step", "env")
+    wrap(BattingEnv, "_reset", "env")
+    for module in (torch_api.iteration, torch_api.selector):
+        for attr in ("build_design", "weighted_ridge", "j_values", "j_criterion"):
+            if hasattr(module, attr):
+                wrap(module, attr, "algebra", outermost=True)
+
+
+def basis() -> GaussianActionBasis:
+    q = math.pi / 4
+    grid = torch.cartesian_prod(
+        torch.tensor([0.0, q]),
+        torch.tensor([-math.pi, 0.0, math.pi]),
+        torch.tensor([-q, 0.0, q]),
+        torch.tensor([-math.pi, 0.0, math.pi]),
+    )
+    return GaussianActionBasis(centers=grid, tau=3 * math.pi / 2, num_actions=2)
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--trials", type=int, default=8)
+    parser.add_argument("--iterations", type=int, default=7)
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--out", default="results/profile_batting.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    envs: list[BattingEnv] = []
+
+    def make(rows: int) -> BattingEnv:
+        envs.append(BattingEnv(batch_size=rows))
+        return envs[-1]
+
+    instrument()
+    api = ActivePolicyIteration(
+        env=make,
+        reward_free_env=make,
+        basis=basis(),
+        schedule=DECREASING[: args.iterations],
+        num_steps=10,
+        gamma=1.0,
+        psi_mode="single",
+        num_trials=args.trials,
+        keep_reward_free=False,
+    )
+    start = time.perf_counter()
+    api.run()
+    wall = time.perf_counter() - start
+    coarse, fine = STEPS["coarse"], STEPS["fine"]
+    env_python = TIMERS["env"] - TIMERS["physics"]
+    torchrl = wall - TIMERS["env"] - TIMERS["algebra"]
+    raw2 = raw_batch_run(envs[0], coarse, fine, nthread=2)
+    raw1 = raw_run(envs[0], coarse, fine)
+    rows = {
+        "physics (MuJoCo rollouts in the env)": TIMERS["physics"],
+        "env Python (noise, gap prediction, look-ahead, TensorDicts)": env_python,
+        "TorchRL rollouts, policies, buffers, checks": torchrl,
+        "algebra (psi_hat, weights, J, solves)": TIMERS["algebra"],
+    }
+    print(
+        f"\nActive run, {args.trials} trials, schedule {list(api.schedule)}: {wall:.1f} s wall; "
+        f"{coarse:,} coarse + {fine:,} fine physics steps\n"
+    )
+    print("| part | seconds | share |\n|---|---:|---:|")
+    for name, seconds in rows.items():
+        print(f"| {name} | {seconds:.2f} | {seconds / wall:.0%} |")
+    print(f"| **total** | {wall:.2f} | 100% |")
+    print(
+        f"\nRaw MuJoCo for the same steps: {raw2:.2f} s (Batch, 2 threads), {raw1:.2f} s "
+        f"(mj_step loop, 1 thread). Wall / raw physics floor (2 threads): {wall / raw2:.2f}×."
+    )
+    payload = {
+        "trials": args.trials,
+        "wall_s": wall,
+        "parts_s": rows,
+        "coarse_steps": coarse,
+        "fine_steps": fine,
+        "raw_batch_2_threads_s": raw2,
+        "raw_loop_1_thread_s": raw1,
+        "wall_over_floor": wall / raw2,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(payload, indent=1))
+    return payload
+
+
+if __name__ == "__main__":
+    main()
