@@ -23,6 +23,7 @@ returned before the algorithm can see it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -30,6 +31,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 __all__ = [
+    "EnvPerBatch",
     "EpisodeBuffer",
     "REWARD_KEY",
     "cat_episodes",
@@ -39,6 +41,38 @@ __all__ = [
 
 REWARD_KEY = ("next", "reward")
 _REQUIRED = ("observation", "action", "sample_probs", ("next", "observation"), "mask")
+
+
+class EnvPerBatch:
+    """An environment, or a factory ``batch_size -> env`` that builds one env per batch size.
+
+    The algorithm needs batches of different sizes (``T·M_l`` rewarded rows, ``T·Z·K·M_l``
+    reward-free rows); a factory lets each size be built once and reused.
+
+    Example:
+        >>> from envs.chain_walk import ChainWalkEnv
+        >>> envs = EnvPerBatch(lambda rows: ChainWalkEnv(batch_size=rows))
+        >>> envs(6) is envs(6), tuple(envs(4).batch_size)
+        (True, (4,))
+    """
+
+    def __init__(self, env: EnvBase | Callable[[int], EnvBase]) -> None:
+        if not (isinstance(env, EnvBase) or callable(env)):
+            raise ValueError(f"env must be a TorchRL EnvBase or a callable, got {type(env)}")
+        self.env = env
+        self._built: dict[int, EnvBase] = {}
+
+    @property
+    def is_factory(self) -> bool:
+        return not isinstance(self.env, EnvBase)
+
+    def __call__(self, batch: int) -> EnvBase:
+        """The env for ``batch`` rows (the fixed env whatever ``batch``, if not a factory)."""
+        if not self.is_factory:
+            return self.env
+        if batch not in self._built:
+            self._built[batch] = self.env(batch)
+        return self._built[batch]
 
 
 def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:

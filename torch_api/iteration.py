@@ -16,7 +16,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api.data import EpisodeBuffer, collect_episodes
+from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes
 from torch_api.design import build_design
 from torch_api.policies import LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
@@ -212,7 +212,7 @@ class ActivePolicyIteration:
         if num_trials is not None and isinstance(env, EnvBase):
             raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
-        self._envs: dict[int, EnvBase] = {}
+        self._env_for = EnvPerBatch(env)
         self.num_trials = num_trials
         self.trial_dims = () if num_trials is None else (int(num_trials),)
         self.basis = basis
@@ -278,13 +278,6 @@ class ActivePolicyIteration:
         """Rewarded transitions bought so far (per trial)."""
         trials = math.prod(self.trial_dims)
         return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
-
-    def _env_for(self, batch: int) -> EnvBase:
-        if isinstance(self.env, EnvBase):
-            return self.env
-        if batch not in self._envs:
-            self._envs[batch] = self.env(batch)
-        return self._envs[batch]
 
     def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
         """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""

@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.data import collect_episodes
+from torch_api.data import EnvPerBatch, collect_episodes
 from torch_api.design import build_design
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
@@ -226,8 +226,7 @@ class SamplingPolicySelector:
                 raise ValueError(f"{name} must be >= 1, got {value}")
         if not lam > 0:
             raise ValueError(f"lam must be > 0, got {lam}")
-        self._env = env
-        self._envs: dict[int, EnvBase] = {}
+        self._envs = EnvPerBatch(env)
         self.psi = psi
         self.num_episodes = int(num_episodes)
         self.num_steps = int(num_steps)
@@ -239,11 +238,7 @@ class SamplingPolicySelector:
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
-        if isinstance(self._env, EnvBase):
-            return self._env
-        if batch not in self._envs:
-            self._envs[batch] = self._env(batch)
-        return self._envs[batch]
+        return self._envs(batch)
 
     def collect(self, candidates: Sequence, iteration: int = 0) -> TensorDictBase:
         """Reward-free episodes of every candidate and repeat, ``[*T, Z, K, M, N]``.

@@ -1,0 +1,123 @@
+"""Independent chunks of trials run one after another in-process, or as Ray tasks.
+
+Trials of an experiment are independent: with ``trial_seeds`` (see
+:class:`~torch_api.iteration.ActivePolicyIteration`) trial t draws from streams of its own, so
+the trials can be split into chunks, each chunk run as one batched computation wherever there is
+room, and the results concatenated along the trial axis. For environments with
+``set_block_seeds`` the concatenation equals one batched run of all trials, bit for bit.
+
+``backend="ray"`` needs the ``ray`` extra (``pip install torch-api[ray]``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+from torch_api.iteration import derive_seed
+
+__all__ = ["BACKENDS", "run_chunks", "split_trials", "trial_seeds"]
+
+BACKENDS = ("local", "ray")
+
+C = TypeVar("C")
+R = TypeVar("R")
+
+
+def split_trials(num_trials: int, num_chunks: int) -> list[range]:
+    """Split trials ``0 … T-1`` into ``num_chunks`` consecutive ranges of near-equal size.
+
+    The first ``T mod num_chunks`` ranges hold one trial more; none is empty.
+
+    Example:
+        >>> split_trials(7, 3)
+        [range(0, 3), range(3, 5), range(5, 7)]
+    """
+    if num_trials < 1:
+        raise ValueError(f"num_trials must be >= 1, got {num_trials}")
+    if not 1 <= num_chunks <= num_trials:
+        raise ValueError(f"num_chunks must lie in 1 … num_trials = {num_trials}, got {num_chunks}")
+    size, extra = divmod(num_trials, num_chunks)
+    bounds = [0]
+    for c in range(num_chunks):
+        bounds.append(bounds[-1] + size + (c < extra))
+    return [range(a, b) for a, b in zip(bounds, bounds[1:], strict=False)]
+
+
+def trial_seeds(seed: int, trials: Sequence[int]) -> list[int]:
+    """Seeds of the given trials of a run seeded ``seed``: ``derive_seed(seed, t, "trial")``.
+
+    These are the seeds :class:`~torch_api.iteration.ActivePolicyIteration` gives its trials by
+    default, so a chunk run with ``trial_seeds=trial_seeds(seed, chunk)`` draws exactly what
+    those trials draw in one run of all trials with ``seed``. Trial t's seed depends on
+    ``(seed, t)`` only, never on the chunking.
+
+    Example:
+        >>> trial_seeds(0, range(3))[1:] == trial_seeds(0, [1, 2])
+        True
+    """
+    return [derive_seed(seed, t, "trial") for t in trials]
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as error:
+        raise ImportError(
+            "backend='ray' needs Ray: pip install 'torch-api[ray]' (or pip install ray)"
+        ) from error
+    return ray
+
+
+def run_chunks(
+    fn: Callable[[C], R],
+    chunks: Sequence[C],
+    *,
+    backend: str = "local",
+    address: str | None = None,
+    num_cpus: int | None = None,
+    runtime_env: dict[str, Any] | None = None,
+) -> list[R]:
+    """``[fn(chunk) for chunk in chunks]``, in-process or as Ray tasks; results in chunk order.
+
+    Args:
+        fn: a top-level (picklable) function of one chunk, e.g. a list of trial indices plus
+            the run's settings, returning a picklable result (plain lists and dicts, tensors).
+        chunks: the chunks, each independent of the others.
+        backend: ``"local"`` runs the chunks here one after another; ``"ray"`` runs each as a
+            Ray remote task (one CPU each) and gathers the results.
+        address: Ray only: the cluster to join (e.g. ``"ray://head:10001"`` or ``"auto"``);
+            ``None`` starts a local Ray instance. Ignored if Ray is initialised already.
+        num_cpus: Ray only: CPUs of a local instance started here (default: all).
+        runtime_env: Ray only: the ``runtime_env`` of ``ray.init`` (e.g.
+            ``{"working_dir": "."}`` to ship this checkout to a cluster whose nodes lack it).
+
+    Returns:
+        ``[fn(c) for c in chunks]``. A Ray instance started here is shut down afterwards; one
+        initialised before the call is left running.
+
+    Example:
+        >>> run_chunks(sum, [[1, 2], [3], [4, 5, 6]])
+        [3, 3, 15]
+        >>> run_chunks(sum, [[1, 2], [3]], backend="ray", num_cpus=2)  # doctest: +SKIP
+        [3, 3]
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "local":
+        return [fn(chunk) for chunk in chunks]
+    ray = _import_ray()
+    started_here = not ray.is_initialized()
+    if started_here:
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports
+        options: dict[str, Any] = {"include_dashboard": False, "runtime_env": runtime_env}
+        if address is None:
+            options["num_cpus"] = num_cpus
+        ray.init(address=address, **options)
+    try:
+        task = ray.remote(num_cpus=1)(fn)
+        return ray.get([task.remote(chunk) for chunk in chunks])
+    finally:
+        if started_here:
+            ray.shutdown()
