@@ -17,10 +17,20 @@ measured twice:
 Iteration 0 holds pi_1 (θ = 1, shared by AL and PL). At the last iteration AL and PL are
 compared by a two-tailed paired t-test on both measures.
 
-Seeds: run seed ``1000·seed + 100·(schedule index)``, the same for AL and PL. The library
-re-seeds, per iteration, the policies' stream and the rewarded and reward-free environments from
-``(run seed, l)``, and hands the evaluation a seed derived from ``(run seed, l)``: AL and PL share
-every stream they can (a paired design), and the test episodes of a pair meet the same noise.
+Seeds: run seed ``1000·seed + 100·(schedule index)``, the same for AL and PL; trial t of a run
+has the seed ``derive_seed(run seed, t, "trial")``. Every random stream of trial t — its
+policies' sampling, its rows of the rewarded, reward-free and test environments — is re-seeded
+per iteration from ``(trial seed, l)``: AL and PL share every stream they can (a paired design),
+the test episodes of a pair meet the same noise, and a trial's numbers do not depend on which
+other trials run beside it.
+
+Scale: ``--chunks C`` splits the trials into C chunks, each run as one batched computation;
+``--backend ray`` runs the chunks as Ray tasks (``pip install -e ".[ray]"``; a local Ray
+instance, or the cluster at ``--ray-address``). The chunks' results are concatenated along the
+trial axis, so the outputs equal those of one batched run of all trials (tested):
+
+    python examples/chain_walk_api.py --trials 1000 --backend ray --chunks 8
+    python examples/chain_walk_api.py --trials 1000 --backend ray --chunks 64 --ray-address auto
 
 Outputs in ``--out-dir``: ``chain_walk_api.json`` (every number per trial and iteration:
 performance, chosen candidate, its ε, J' of every candidate, transitions bought; θ and the
@@ -48,7 +58,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
     CENTERS,
@@ -62,12 +71,14 @@ from envs.chain_walk import (  # noqa: E402
 )
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
+from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 METHODS = {"AL": "active", "PL": "passive"}
 MEASURES = ("test_return", "exact_return", "percent_optimal")
+PER_TRIAL = (*MEASURES, "chosen", "sampling_epsilon", "j_mean")  # per-iteration lists over trials
 _ROLE_REWARDED, _ROLE_REWARD_FREE, _ROLE_TEST = 1, 2, 3  # environment seed streams
 
 
@@ -97,6 +108,14 @@ class Args:
     """steps per test episode (and the horizon of the exact value)"""
     threads: int = 0
     """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+    backend: str = "local"
+    """where the chunks of trials run: 'local' (here, one after another) or 'ray'"""
+    chunks: int = 1
+    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. 'auto'); '' starts a local Ray instance"""
+    ray_cpus: int = 0
+    """CPUs of a local Ray instance (0: all)"""
 
 
 def parse_args(argv=None) -> Args:
@@ -112,6 +131,10 @@ def parse_args(argv=None) -> Args:
         raise ValueError(f"--iterations must lie in 1 … 7, got {args.iterations}")
     if args.trials < 2:
         raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
+    if args.backend not in BACKENDS:
+        raise ValueError(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
+    if not 1 <= args.chunks <= args.trials:
+        raise ValueError(f"--chunks must lie in 1 … --trials = {args.trials}, got {args.chunks}")
     return args
 
 
@@ -125,11 +148,16 @@ def env_factory(run_seed: int, role: int):
     return lambda batch: ChainWalkEnv(batch_size=batch, seed=derived_seed(run_seed, role, batch))
 
 
-def make_evaluator(args: Args, run_seed: int):
-    """The ``evaluate`` callback: performance of pi_{l+1} per trial (eq. 61 and exact)."""
-    trials, m, n = args.trials, args.test_episodes, args.test_steps
-    env = ChainWalkEnv(batch_size=trials * m, seed=derived_seed(run_seed, _ROLE_TEST))
-    generator = torch.Generator().manual_seed(derived_seed(run_seed, _ROLE_TEST, 0))
+def make_evaluator(args: Args, trials: int):
+    """The ``evaluate`` callback: performance of pi_{l+1} per trial (eq. 61 and exact).
+
+    The library hands pi_{l+1} with one sampling stream per trial, seeded from
+    ``api.block_seeds(l, "evaluation")``; the test env's rows of trial t are seeded from the
+    same per-trial seed (a stream apart), so trial t's test episodes depend on (its seed, l)
+    only: not on the learner's streams, nor on the other trials of the batch.
+    """
+    m, n = args.test_episodes, args.test_steps
+    env = ChainWalkEnv(batch_size=trials * m, seed=0)  # re-seeded per trial before every use
     model = chain_walk_model()
     P, R = model.transitions, model.expected_reward
     best, _ = optimal_policy(P, R, GAMMA)
@@ -139,16 +167,10 @@ def make_evaluator(args: Args, run_seed: int):
     discounts = GAMMA ** torch.arange(n, dtype=torch.float64)
 
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
-        # ``seed`` (from the library, derived from the run seed and l) re-seeds the test env and
-        # the test sampling stream: AL and PL of a pair meet the same test noise. The policy is
-        # copied onto that stream: testing never consumes the learner's stream.
-        if seed is not None:
-            env.set_seed(derived_seed(seed, 0))
-            generator.manual_seed(derived_seed(seed, 1))
-        tester = LinearQPolicy(
-            basis=policy.basis, theta=policy.theta, epsilon=policy.epsilon, generator=generator
+        env.set_block_seeds(
+            [derived_seed(g.initial_seed(), _ROLE_TEST) for g in policy.block_generators]
         )
-        episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
+        episodes = collect_episodes(env, policy, num_episodes=m, num_steps=n, rewarded=True)
         reward = episodes[REWARD_KEY].to(torch.float64) * episodes["mask"]  # [T, m, n]
         test_return = (reward * discounts).sum(-1).mean(-1)  # eq. 61, [T]
         table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
@@ -162,32 +184,51 @@ def make_evaluator(args: Args, run_seed: int):
     return evaluate, float(optimum)
 
 
-def run_method(args: Args, schedule: tuple[int, ...], mode: str, run_seed: int) -> dict:
-    """One batched run of Algorithm 1 (all trials); per-iteration, per-trial records."""
+@dataclass
+class Chunk:
+    """Some trials of one run (a schedule and a method), to be run as one batch."""
+
+    args: Args
+    schedule: tuple[int, ...]
+    mode: str
+    run_seed: int
+    trials: list[int]
+    """indices t of the run's trials in this chunk"""
+    progress: bool = True
+
+
+def run_chunk(chunk: Chunk) -> dict:
+    """One batched run of Algorithm 1 on a chunk of trials; per-iteration, per-trial records."""
+    args, run_seed = chunk.args, chunk.run_seed
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
-    evaluate, optimum = make_evaluator(args, run_seed)
+    evaluate, optimum = make_evaluator(args, len(chunk.trials))
     api = ActivePolicyIteration(
         env=env_factory(run_seed, _ROLE_REWARDED),
         reward_free_env=env_factory(run_seed, _ROLE_REWARD_FREE),
         basis=basis,
-        schedule=schedule,
+        schedule=chunk.schedule,
         num_steps=args.steps,
         gamma=GAMMA,
-        mode=mode,
+        mode=chunk.mode,
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="grouped",
         evaluate=evaluate,
-        num_trials=args.trials,
+        num_trials=len(chunk.trials),
         seed=run_seed,
+        trial_seeds=trial_seeds(run_seed, chunk.trials),  # trial t's seed: (run seed, t) only
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
     )
-    initial = evaluate(api.policy, derived_seed(run_seed, _ROLE_TEST, 0))  # pi_1, iteration 0
+    first = LinearQPolicy(basis=basis, theta=api.policy.theta, epsilon=api.policy.epsilon)
+    first.block_generators = [
+        torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
+    ]
+    initial = evaluate(first)  # pi_1, iteration 0
     started = time.perf_counter()
-    history = api.run(progress=True)
+    history = api.run(progress=chunk.progress)
     seconds = time.perf_counter() - started
     return {
-        "mode": mode,
+        "mode": chunk.mode,
         "seed": run_seed,
         "seconds": seconds,
         "optimal_exact_return": optimum,
@@ -207,6 +248,20 @@ def run_method(args: Args, schedule: tuple[int, ...], mode: str, run_seed: int) 
             for rec in history
         ],
     }
+
+
+def concatenate_chunks(parts: list[dict]) -> dict:
+    """The chunks of one run as one run: per-trial lists concatenated, seconds summed."""
+    run = {**parts[0], "seconds": sum(p["seconds"] for p in parts), "iterations": []}
+    for its in zip(*(p["iterations"] for p in parts), strict=True):
+        it = dict(its[0])
+        for key in PER_TRIAL:
+            if it.get(key) is not None:
+                it[key] = [x for part in its for x in part[key]]
+        if "seconds" in it:
+            it["seconds"] = sum(part["seconds"] for part in its)
+        run["iterations"].append(it)
+    return run
 
 
 def mean_se(values) -> tuple[float, float]:
@@ -346,14 +401,33 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
     started = time.perf_counter()
-    results = {}
     jobs = [(name, method) for name in names for method in METHODS]
-    for name, method in tqdm(jobs, desc="schedule × method"):
-        index = list(SCHEDULES).index(name)
-        run_seed = 1000 * args.seed + 100 * index  # shared by AL and PL: paired design
-        schedule = SCHEDULES[name][: args.iterations]
-        entry = results.setdefault(name, {"schedule": list(schedule), "runs": {}})
-        entry["runs"][method] = run_method(args, schedule, METHODS[method], run_seed)
+    chunks = [
+        Chunk(
+            args=args,
+            schedule=SCHEDULES[name][: args.iterations],
+            mode=METHODS[method],
+            run_seed=1000 * args.seed + 100 * list(SCHEDULES).index(name),  # AL, PL: paired
+            trials=list(trials),
+            progress=args.backend == "local",
+        )
+        for name, method in jobs
+        for trials in split_trials(args.trials, args.chunks)
+    ]
+    print(f"{len(chunks)} chunks of about {args.trials // args.chunks} trials ({args.backend})")
+    parts = run_chunks(
+        run_chunk,
+        chunks,
+        backend=args.backend,
+        address=args.ray_address or None,
+        num_cpus=args.ray_cpus or None,
+    )
+    results = {}
+    for j, (name, method) in enumerate(jobs):
+        entry = results.setdefault(
+            name, {"schedule": list(SCHEDULES[name][: args.iterations]), "runs": {}}
+        )
+        entry["runs"][method] = concatenate_chunks(parts[j * args.chunks : (j + 1) * args.chunks])
     for res in results.values():
         res["t_tests"] = paired_tests(res["runs"])
     wall = time.perf_counter() - started

@@ -25,11 +25,23 @@ trial of one schedule costs about 5.4 CPU-seconds (most of it MuJoCo rollouts: 9
 
     python examples/train_batting.py --trials 500 --schedule both
 
+Beyond one machine: ``--chunks C`` splits the trials of every run into C chunks, each one
+batched run, and ``--backend ray`` runs the chunks as Ray tasks (``pip install -e ".[ray]"``; a
+local Ray instance, or the cluster at ``--ray-address``); the chunks' results are concatenated
+along the trial axis into the same JSON, CSV and figure. Trial t always has the seed
+``derive_seed(seed, t, "trial")``, whatever the chunking, and ``BattingEnv.set_block_seeds``
+gives every trial's arms noise streams of their own, so the chunked results equal the unchunked
+ones (tested). (An environment without ``set_block_seeds`` would draw from one stream per chunk,
+seeded from the chunk: an equally valid sample, but not the same numbers.)
+
+    python examples/train_batting.py --trials 500 --schedule both --backend ray --chunks 16
+
 Rewarded episodes are expensive, so every run is checkpointed after each batch of rewarded
-episodes and after each iteration (``<out-dir>/checkpoints/<schedule>_<mode>.pt``). After an
-interruption, the same command with ``--resume`` continues every run from its checkpoint without
-buying its rewarded episodes again; completed runs are not recomputed. Physics is MuJoCo on the
-CPU; ``--device cuda`` moves the algebra (psi_hat, J, the solves) to the GPU.
+episodes and after each iteration (``<out-dir>/checkpoints/<schedule>_<mode>.pt``, with
+``_chunk<c>of<C>`` before ``.pt`` when chunked). After an interruption, the same command with
+``--resume`` continues every run from its checkpoint without buying its rewarded episodes again;
+completed runs are not recomputed. Physics is MuJoCo on the CPU; ``--device cuda`` moves the
+algebra (psi_hat, J, the solves) to the GPU.
 
 Testing aid: ``--stop-after-checkpoints K`` ends the process abruptly (``os._exit(3)``, no
 cleanup) right after the K-th checkpoint of this invocation is written, to simulate an
@@ -67,11 +79,13 @@ import torch  # noqa: E402
 from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
-from torch_api.iteration import ActivePolicyIteration  # noqa: E402
+from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
+from torch_api.iteration import ActivePolicyIteration, derive_seed  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 MODES = {"active": "AL", "passive": "PL"}
+PER_TRIAL = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")  # [L][T] lists
 TAU = 3 * math.pi / 2  # kernel width τ (rad)
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
@@ -109,6 +123,14 @@ class Args:
     """continue every run from its checkpoint in out_dir; completed runs are not recomputed"""
     stop_after_checkpoints: int = 0
     """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
+    backend: str = "local"
+    """where the chunks of trials run: local (here, one after another) or ray"""
+    chunks: int = 1
+    """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
+    ray_cpus: int = 0
+    """CPUs of a local Ray instance (0: all)"""
 
 
 def field_docs(cls) -> dict[str, str]:
@@ -142,6 +164,12 @@ def parse_args(argv=None) -> Args:
         parser.error(f"--iterations must lie in 1..7, got {args.iterations}")
     if args.trials < 1 or args.repeats < 1 or args.episodes < 0:
         parser.error("--trials and --repeats must be >= 1 and --episodes >= 0")
+    if args.backend not in BACKENDS:
+        parser.error(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
+    if not 1 <= args.chunks <= args.trials:
+        parser.error(f"--chunks must lie in 1..--trials = {args.trials}, got {args.chunks}")
+    if args.backend != "local" and args.stop_after_checkpoints:
+        parser.error("--stop-after-checkpoints is a testing aid of --backend local")
     return args
 
 
@@ -161,8 +189,12 @@ def make_basis() -> GaussianActionBasis:
 class TestPerformance:
     """Performance of a learned policy (eq. 68): Σ_m Σ_n r over 20 test episodes, per trial.
 
-    The environment (T·20 arms) and the policy's sampling stream are both seeded from the seed
-    the iteration loop passes, so a resumed run measures exactly what an uninterrupted one would.
+    The loop hands pi_{l+1} with one sampling stream per trial, seeded from
+    ``api.block_seeds(l, "evaluation")``. An environment with ``set_block_seeds`` gets one
+    stream per trial too, seeded from the same per-trial seeds (a stream apart): trial t's
+    performance then depends on (its seed, l) only. Otherwise the T·20 arms share one stream
+    seeded from the ``seed`` the loop passes (derived from the run's seed and l). Either way a
+    resumed run measures exactly what an uninterrupted one would.
     """
 
     def __init__(self, trials: int) -> None:
@@ -172,15 +204,14 @@ class TestPerformance:
     def __call__(self, policy: LinearQPolicy, seed: int) -> dict:
         if self.env is None:
             self.env = BattingEnv(batch_size=self.trials * TEST_EPISODES, seed=seed)
-        self.env.set_seed(seed)
-        tester = LinearQPolicy(
-            basis=policy.basis,
-            theta=policy.theta,
-            epsilon=policy.epsilon,
-            generator=torch.Generator().manual_seed(seed),
-        )
+        if hasattr(self.env, "set_block_seeds"):
+            self.env.set_block_seeds(
+                [derive_seed(g.initial_seed(), 0, "evaluation") for g in policy.block_generators]
+            )
+        else:
+            self.env.set_seed(seed)
         episodes = collect_episodes(
-            self.env, tester, num_episodes=TEST_EPISODES, num_steps=MAX_STEPS, rewarded=True
+            self.env, policy, num_episodes=TEST_EPISODES, num_steps=MAX_STEPS, rewarded=True
         )  # [T, 20, N]
         reward = episodes[REWARD_KEY] * episodes["mask"]
         hits = (reward > 0).any(-1).double().mean(-1)
@@ -212,32 +243,89 @@ class InterruptibleRun(ActivePolicyIteration):
             self.counter.saved()
 
 
-def make_run(args: Args, schedule: list[int], mode: str, path: Path, counter: CheckpointCounter):
-    """One ActivePolicyIteration run of all trials, checkpointed to ``path``."""
+@dataclass
+class Chunk:
+    """Some trials of one run (a schedule and a mode), run as one batch and checkpointed."""
+
+    args: Args
+    schedule: list[int]
+    mode: str
+    trials: list[int]
+    """indices t of the run's trials in this chunk"""
+    checkpoint: Path
+    counter: CheckpointCounter
+    progress: bool = True
+
+
+def checkpoint_name(schedule: str, mode: str, chunk: int, chunks: int) -> str:
+    """``<schedule>_<mode>.pt``, or ``<schedule>_<mode>_chunk<c>of<C>.pt`` (c = 1 … C) if C > 1."""
+    suffix = "" if chunks == 1 else f"_chunk{chunk + 1}of{chunks}"
+    return f"{schedule}_{mode}{suffix}.pt"
+
+
+def chunk_seed(seed: int, first_trial: int) -> int:
+    """A 63-bit seed of the chunk starting at ``first_trial`` (distinct chunks, distinct seeds)."""
+    return int(np.random.SeedSequence([seed, first_trial]).generate_state(1, np.uint64)[0] >> 1)
+
+
+def make_run(chunk: Chunk) -> InterruptibleRun:
+    """One ActivePolicyIteration run of the chunk's trials, checkpointed to ``chunk.checkpoint``.
+
+    Trial t's seed is ``derive_seed(seed, t, "trial")`` in every chunking. The run's own seed
+    (the environments' single stream where they lack ``set_block_seeds``) is ``--seed`` for the
+    chunk holding trial 0 (an unchunked run) and derived from the chunk's first trial for the
+    others, so no two chunks replay the same noise.
+    """
+    args = chunk.args
 
     def env(batch: int) -> BattingEnv:
         return BattingEnv(batch_size=batch)  # re-seeded by the loop every iteration
 
+    first = chunk.trials[0]
+    seed = args.seed if first == 0 else chunk_seed(args.seed, first)
     api = InterruptibleRun(
         env=env,
         reward_free_env=env,
         basis=make_basis(),
-        schedule=schedule,
+        schedule=chunk.schedule,
         num_steps=MAX_STEPS,
         gamma=GAMMA,
-        mode=mode,
+        mode=chunk.mode,
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
-        evaluate=TestPerformance(args.trials),
-        num_trials=args.trials,
-        seed=args.seed,
+        evaluate=TestPerformance(len(chunk.trials)),
+        num_trials=len(chunk.trials),
+        seed=seed,
+        trial_seeds=trial_seeds(args.seed, chunk.trials),
         keep_reward_free=False,  # not needed later; keeps checkpoints small
-        checkpoint_path=path,
+        checkpoint_path=chunk.checkpoint,
         device=args.device,
     )
-    api.counter = counter
+    api.counter = chunk.counter
     return api
+
+
+def run_chunk(chunk: Chunk) -> dict:
+    """Run (or resume, with ``--resume``) one chunk; its history as :func:`summarise` lists."""
+    api = make_run(chunk)
+    if chunk.args.resume and chunk.checkpoint.exists():
+        api.load(chunk.checkpoint)
+        print(f"resumed {chunk.checkpoint} at iteration {api.iteration}/{len(chunk.schedule)}")
+    api.run(progress=chunk.progress)
+    return summarise(api.history, chunk.mode)
+
+
+def concatenate_chunks(parts: list[dict]) -> dict:
+    """The chunks of one run as one run: per-trial lists concatenated, seconds summed."""
+    run = dict(parts[0])
+    for key in PER_TRIAL:
+        run[key] = [
+            None if its[0] is None else [x for part in its for x in part]
+            for its in zip(*(p[key] for p in parts), strict=True)
+        ]
+    run["seconds"] = [sum(s) for s in zip(*(p["seconds"] for p in parts), strict=True)]
+    return run
 
 
 def summarise(history: list, mode: str) -> dict:
@@ -357,20 +445,36 @@ def main(argv=None) -> dict:
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
     counter = CheckpointCounter(args.stop_after_checkpoints)
     started = time.perf_counter()
+    jobs = [(name, mode) for name in names for mode in MODES]
+    pieces = split_trials(args.trials, args.chunks)
+    chunks = [
+        Chunk(
+            args=args,
+            schedule=schedule_of(args, name),
+            mode=mode,
+            trials=list(trials),
+            checkpoint=ckpt_dir / checkpoint_name(name, mode, c, args.chunks),
+            counter=counter,
+            progress=args.backend == "local",
+        )
+        for name, mode in jobs
+        for c, trials in enumerate(pieces)
+    ]
+    parts = run_chunks(
+        run_chunk,
+        chunks,
+        backend=args.backend,
+        address=args.ray_address or None,
+        num_cpus=args.ray_cpus or None,
+    )
     results = {}
-    for name in names:
-        schedule = schedule_of(args, name)
-        runs = {}
-        for mode in MODES:
-            path = ckpt_dir / f"{name}_{mode}.pt"
-            api = make_run(args, schedule, mode, path, counter)
-            if args.resume and path.exists():
-                api.load(path)
-                print(f"resumed {path} at iteration {api.iteration}/{len(schedule)}")
-            api.run(progress=True)
-            runs[mode] = summarise(api.history, mode)
+    for j, (name, mode) in enumerate(jobs):
+        entry = results.setdefault(name, {"schedule": schedule_of(args, name), "runs": {}})
+        entry["runs"][mode] = concatenate_chunks(parts[j * args.chunks : (j + 1) * args.chunks])
+    for res in results.values():
+        runs = res["runs"]
         test = paired_test(runs["active"]["performance"][-1], runs["passive"]["performance"][-1])
-        results[name] = {"schedule": schedule, "runs": runs, "paired_t_test_last": test}
+        res["paired_t_test_last"] = test
     wall = time.perf_counter() - started
 
     for name, res in results.items():

@@ -6,6 +6,7 @@ Each run must finish, and its JSON / CSV / PNG outputs must exist and hold finit
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import math
 import os
@@ -110,3 +111,49 @@ def test_gym_drop_in(tmp_path):
     assert len(rows) == 2 * 3 * 2  # methods × iterations (0..2) × trials
     assert all(math.isfinite(float(row["steps_balanced"])) for row in rows)
     _check_png(tmp_path / "performance.png")
+
+
+# -- chunks of trials (torch_api/dispatch.py): the same numbers however the trials are split ----
+
+CHUNK_RUN = ("--trials", "3", "--iterations", "2", "--schedule", "decreasing")
+CHUNK_RUN += ("--test-episodes", "3", "--test-steps", "10")
+
+
+def _without_times(value):
+    """A JSON value without its wall times and arguments (what differs between chunkings)."""
+    if isinstance(value, dict):
+        skip = ("seconds", "wall_seconds", "args")
+        return {k: _without_times(v) for k, v in value.items() if k not in skip}
+    if isinstance(value, list):
+        return [_without_times(v) for v in value]
+    return value
+
+
+@pytest.fixture(scope="module")
+def chain_walk_one_chunk(tmp_path_factory) -> dict:
+    out = tmp_path_factory.mktemp("one_chunk")
+    _run("chain_walk_api.py", *CHUNK_RUN, "--chunks", "1", "--out-dir", str(out))
+    return json.loads((out / "chain_walk_api.json").read_text())
+
+
+def test_chain_walk_api_chunks_give_the_same_numbers(chain_walk_one_chunk, tmp_path):
+    _run("chain_walk_api.py", *CHUNK_RUN, "--chunks", "3", "--out-dir", str(tmp_path))
+    chunked = json.loads((tmp_path / "chain_walk_api.json").read_text())
+    assert _without_times(chunked) == _without_times(chain_walk_one_chunk)
+    assert len(chunked["results"]["decreasing"]["runs"]["AL"]["iterations"][-1]["chosen"]) == 3
+
+
+HAVE_RAY = importlib.util.find_spec("ray") is not None
+
+
+@pytest.mark.skipif(not HAVE_RAY, reason="the ray extra is not installed (pip install ray)")
+def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp_path):
+    out = _run(
+        "chain_walk_api.py",
+        *CHUNK_RUN,
+        *("--backend", "ray", "--chunks", "2", "--ray-cpus", "2", "--out-dir", str(tmp_path)),
+    )
+    assert "4 chunks" in out  # (AL, PL) × 2 chunks, as Ray tasks
+    on_ray = json.loads((tmp_path / "chain_walk_api.json").read_text())
+    assert _without_times(on_ray) == _without_times(chain_walk_one_chunk)
+    _check_png(tmp_path / "fig8_performance.png")

@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "examples" / "train_batting.py"
 TINY = ["--trials", "2", "--iterations", "2", "--episodes", "2", "--repeats", "2", "--seed", "3"]
 STEPS = 10  # N of the batting task
+MODES = ("active", "passive")
 INTERRUPTED = 3  # exit code of the script's --stop-after-checkpoints testing aid
 
 
@@ -93,3 +94,30 @@ def test_interrupted_and_resumed_run_matches(uninterrupted, tmp_path):
     assert resumed == expected
     for run in resumed["decreasing"].values():  # no rewarded episode bought twice
         assert run["rewarded_transitions"][-1] == (2 + 2) * STEPS
+
+
+def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
+    """Two chunks of one trial each: per-chunk checkpoints, the numbers of one batch of two."""
+    reference, proc = uninterrupted
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    chunked = run_script(tmp_path, "--chunks", "2")
+    assert chunked.returncode == 0, chunked.stderr[-3000:]
+    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    expected_names = [f"decreasing_{m}_chunk{c}of2.pt" for m in MODES for c in (1, 2)]
+    assert names == expected_names
+    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
+    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+
+
+def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
+    reference, proc = uninterrupted
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    # Checkpoints: AL chunk 1 buys, fits, buys (3); stop. Resume: chunk 1 continues, chunk 2 anew.
+    first = run_script(tmp_path, "--chunks", "2", "--stop-after-checkpoints", "3")
+    assert first.returncode == INTERRUPTED, first.stderr[-3000:]
+    second = run_script(tmp_path, "--chunks", "2", "--resume")
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "decreasing_active_chunk1of2.pt at iteration 1/2" in second.stdout
+    assert "decreasing_active_chunk2of2.pt" not in second.stdout  # nothing to resume there
+    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
+    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
