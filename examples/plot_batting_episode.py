@@ -89,7 +89,9 @@ def main(args: Args) -> Path:
             axis.plot(pts[1:, 0], pts[1:, 1], color=plt.cm.Oranges(shade), lw=2)
         # ball while in the simulation (before it is parked beside the plane)
         ball = np.array([q[2:5] for q in qpos])
-        on_plane = np.abs(ball[:, 1]) < 0.5
+        on_plane = (
+            np.abs(ball[:, 1]) < 1e-3
+        )  # (interpolated records toward the parked ball leave it)
         axis.plot(ball[on_plane, 0], ball[on_plane, 2], "k.", ms=2)
         axis.add_patch(
             plt.Circle((ball[0, 0], ball[0, 2]), sim.ball_radius, fc="white", ec="k", zorder=5)

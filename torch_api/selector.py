@@ -91,7 +91,9 @@ def j_values(
         )
         prev = prev.expand(*lead, *prev.shape[-2:]).clone()
         pool = torch.cat([pool, prev], dim=-2)
-    design = build_design(pool, policy, psi)
+    # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
+    # the collapse warning is for fits on rewarded data, not for this reward-free pool.
+    design = build_design(pool, policy, psi, min_ess_fraction=0.0)
     n0 = design.num_samples.to(torch.float64)
     u_tilde = weighted_moment(design.x, design.w) / n0[..., None, None]
 
