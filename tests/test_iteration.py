@@ -201,3 +201,23 @@ def test_batched_trials_equal_one_at_a_time_runs_with_the_same_seeds():
         for r_alone, r_batched in zip(alone.history, batched.history, strict=True):
             assert r_alone.chosen[0] == r_batched.chosen[t]
             assert r_alone.j_mean[0] == r_batched.j_mean[t]
+
+
+def test_softmax_improvement_runs_with_softmax_candidates():
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    api = ActivePolicyIteration(
+        env=lambda e: ChainWalkEnv(batch_size=e),
+        basis=basis,
+        schedule=(3, 2),
+        num_steps=10,
+        gamma=GAMMA,
+        psi_mode="grouped",
+        num_repeats=2,
+        num_trials=2,
+        improvement="softmax",
+        beta=0.5,
+    )
+    history = api.run()
+    assert api.policy.beta == 0.5 and api.policy.epsilon is None
+    assert all(rule in (0.5, 1.0, 2.5, 10.0) for r in history for rule in r.sampling_rule)
+    assert len(api.reward_free) == 2 * 4 * (3 + 2)  # Z · K · Σ M_l episodes per trial

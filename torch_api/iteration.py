@@ -237,7 +237,6 @@ class ActivePolicyIteration:
                 f"trial_seeds must hold num_trials = {num_trials} seeds, got {len(trial_seeds)}"
             )
         self.trial_seeds = None if trial_seeds is None else [int(t) for t in trial_seeds]
-        self._block_generators: list[torch.Generator] | None = None
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
@@ -254,9 +253,11 @@ class ActivePolicyIteration:
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.iteration = 0  # iterations completed
         self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))  # per trial
+        num_candidates = len(
+            SOFTMAX_CANDIDATE_SCALES if improvement == "softmax" else self.candidate_offsets
+        )
         self.reward_free = EpisodeBuffer(
-            rewarded=False,
-            capacity=self.num_repeats * len(self.candidate_offsets) * sum(schedule),
+            rewarded=False, capacity=self.num_repeats * num_candidates * sum(schedule)
         )
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
@@ -337,10 +338,9 @@ class ActivePolicyIteration:
         trials = math.prod(self.trial_dims)
         self.generator.manual_seed(derive_seed(self.seed, iteration, "policy"))
         if self.trial_seeds is not None:
-            self._block_generators = [
+            self.policy.block_generators = [
                 torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "policy")
             ]
-            self.policy.block_generators = self._block_generators
         self._seed_env(self._env_for(trials * num_episodes), iteration, "rewarded_env")
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
