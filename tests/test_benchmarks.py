@@ -15,6 +15,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
         (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
         (["profile_batting.py", "--trials", "1", "--iterations", "1"], "Wall / raw physics"),
+        (["bench_collection.py", "--sizes", "4", "--budget", "0.01"], "| Collector / rollout"),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):
