@@ -14,14 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 from pathlib import Path
 
 import torch
 from _timing import machine_info, median_times
 from torchrl.collectors import Collector
 
-from envs.batting import BattingEnv
+from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.data import collect_episodes
@@ -37,14 +36,7 @@ def chain_walk_policy() -> LinearQPolicy:
 
 
 def batting_policy() -> LinearQPolicy:
-    q = math.pi / 4
-    grid = torch.cartesian_prod(
-        torch.tensor([0.0, q]),
-        torch.tensor([-math.pi, 0.0, math.pi]),
-        torch.tensor([-q, 0.0, q]),
-        torch.tensor([-math.pi, 0.0, math.pi]),
-    )
-    basis = GaussianActionBasis(centers=grid, tau=3 * math.pi / 2, num_actions=2)
+    basis = GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2)
     return LinearQPolicy(basis=basis, theta=torch.ones(110), epsilon=0.3)
 
 

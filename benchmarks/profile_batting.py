@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -36,7 +35,7 @@ import torch_api.iteration
 import torch_api.selector
 import torch_api.solve
 from envs import batting
-from envs.batting import BattingEnv
+from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
 
@@ -96,14 +95,7 @@ def instrument() -> None:
 
 
 def basis() -> GaussianActionBasis:
-    q = math.pi / 4
-    grid = torch.cartesian_prod(
-        torch.tensor([0.0, q]),
-        torch.tensor([-math.pi, 0.0, math.pi]),
-        torch.tensor([-q, 0.0, q]),
-        torch.tensor([-math.pi, 0.0, math.pi]),
-    )
-    return GaussianActionBasis(centers=grid, tau=3 * math.pi / 2, num_actions=2)
+    return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2)
 
 
 def main() -> dict:

@@ -73,9 +73,12 @@ from torchrl.envs import EnvBase
 
 __all__ = [
     "ACTION_TORQUES",
+    "BASIS_CENTER_GRID",
+    "BASIS_TAU",
     "COARSE_DT",
     "CONTROL_DT",
     "FINE_DT",
+    "basis_centers",
     "INITIAL_ARM_STATE",
     "MARGIN",
     "MAX_STEPS",
@@ -110,6 +113,15 @@ PARK_Y = 1.0  # (m) a ball out of play rests on the ground this far beside the a
 OBSERVATION_BOUND = (math.pi / 2, 100.0, math.pi / 2, 100.0)
 PREDICT_POINTS = 8  # points per coarse interval at which the bat-ball gap is predicted
 SETTLE_TIME = 0.2  # (s) time the ball is left to settle on its pin when the model is built
+# The paper's basis (eq. 64-65), for the algorithm's side: 54 Gaussian centres on this grid
+# (per state dimension: phi1 (rad), phi1_dot (rad/s), phi2 (rad), phi2_dot (rad/s)) and width τ.
+BASIS_CENTER_GRID = (
+    (0.0, math.pi / 4),
+    (-math.pi, 0.0, math.pi),
+    (-math.pi / 4, 0.0, math.pi / 4),
+    (-math.pi, 0.0, math.pi),
+)
+BASIS_TAU = 3 * math.pi / 2  # (rad) kernel width τ of eq. 64
 
 _QPOS_ARM = slice(0, 2)  # phi1, phi2 (rad)
 _QPOS_BALL = slice(2, 9)  # ball position (m) and orientation quaternion
@@ -120,6 +132,14 @@ _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
     "rk4": mujoco.mjtIntegrator.mjINT_RK4,
 }
+
+
+def basis_centers() -> torch.Tensor:
+    """The 54 Gaussian centres of the paper's batting basis (eq. 65), float64 ``[54, 4]``."""
+    grids = torch.meshgrid(
+        *[torch.tensor(g, dtype=torch.float64) for g in BASIS_CENTER_GRID], indexing="ij"
+    )
+    return torch.stack([g.reshape(-1) for g in grids], dim=-1)
 
 
 def flight_carry(

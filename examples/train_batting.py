@@ -73,9 +73,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
-import torch  # noqa: E402
 
-from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
+from envs.batting import (  # noqa: E402
+    BASIS_TAU,
+    MAX_STEPS,
+    N_ACTIONS,
+    BattingEnv,
+    basis_centers,
+)
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
@@ -85,15 +90,8 @@ from torch_api.policies import LinearQPolicy  # noqa: E402
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 MODES = {"active": "AL", "passive": "PL"}
 PER_TRIAL = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")  # [L][T] lists
-TAU = 3 * math.pi / 2  # kernel width τ (rad)
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
-CENTER_GRID = (  # per state dimension: phi1 (rad), phi1_dot (rad/s), phi2 (rad), phi2_dot (rad/s)
-    (0.0, math.pi / 4),
-    (-math.pi, 0.0, math.pi),
-    (-math.pi / 4, 0.0, math.pi / 4),
-    (-math.pi, 0.0, math.pi),
-)
 
 
 @dataclass
@@ -180,9 +178,7 @@ def schedule_of(args: Args, name: str) -> list[int]:
 
 def make_basis() -> GaussianActionBasis:
     """The paper's 54 Gaussian centres, τ = 3π/2, and a constant, per action (B = 110)."""
-    grids = torch.meshgrid(*[torch.tensor(g) for g in CENTER_GRID], indexing="ij")
-    centers = torch.stack([g.reshape(-1) for g in grids], dim=-1)  # [54, 4]
-    return GaussianActionBasis(centers=centers, tau=TAU, num_actions=N_ACTIONS)
+    return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
 
 
 class TestPerformance:

@@ -43,6 +43,9 @@ def test_batting_basis_width_is_110():
     )
     basis = GaussianActionBasis(centers=grid, tau=3 * math.pi / 2, num_actions=2)
     assert basis.num_features == 110
+    from envs.batting import BASIS_TAU, basis_centers
+
+    assert torch.equal(basis_centers().float(), grid) and BASIS_TAU == 3 * math.pi / 2
     assert basis.phi_all(torch.zeros(3, 4)).shape == (3, 2, 110)
 
 
