@@ -14,7 +14,7 @@ from torch_api.data import EnvPerBatch, collect_episodes
 from torch_api.design import build_design
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
-from torch_api.solve import DEFAULT_LAMBDA, j_criterion, weighted_moment
+from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
 
 __all__ = [
     "PolicyStack",
@@ -94,26 +94,34 @@ def j_values(
     # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
     # the collapse warning is for fits on rewarded data, not for this reward-free pool.
     design = build_design(pool, policy, psi, min_ess_fraction=0.0)
-    n0 = design.num_samples.to(torch.float64)
-    u_tilde = weighted_moment(design.x, design.w) / n0[..., None, None]
-
+    # Moments, unnormalised: each candidate's own rows, and once per repeat the earlier sets'
+    # rows, which every Π_k shares; Ũ over D̄_0 is then their sum, with no pass of its own.
     split = num_candidates * num_episodes * num_steps
+    axis = len(lead)  # the sample axis of the pooled design
 
-    def per_candidate(t: torch.Tensor) -> torch.Tensor:
-        """Rows of ``Π_k``: candidate k's own samples + earlier sets ``[..., K, n_k, *]``."""
-        axis = len(lead)  # the sample axis of the pooled design
-        tail = t.shape[axis + 1 :]
-        own = t.narrow(axis, 0, split).reshape(
-            *lead, num_candidates, num_episodes * num_steps, *tail
+    def own(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
+        return t.narrow(axis, 0, split).reshape(
+            *lead, num_candidates, num_episodes * num_steps, *t.shape[axis + 1 :]
         )
-        rest = t.narrow(axis, split, t.shape[axis] - split).unsqueeze(axis)
-        rest = rest.expand(*lead, num_candidates, *rest.shape[axis + 1 :])
-        return torch.cat([own, rest], dim=axis + 1)
 
-    x_k = per_candidate(design.x)
-    w_k = per_candidate(design.w)
-    n_k = per_candidate(design.mask).sum(-1)
-    return j_criterion(x_k, w_k, u_tilde.unsqueeze(-3), lam, num_samples=n_k)
+    def shared(t: torch.Tensor) -> torch.Tensor:  # [..., M'·N, *]
+        return t.narrow(axis, split, t.shape[axis] - split)
+
+    w_own, w_shared = own(design.w), shared(design.w)
+    a_own = weighted_moment(own(design.x), w_own)  # [..., K, B, B]
+    c_own = weighted_moment(own(design.x), w_own.pow(2))
+    a_shared = weighted_moment(shared(design.x), w_shared)  # [..., B, B]
+    c_shared = weighted_moment(shared(design.x), w_shared.pow(2))
+    n_own = own(design.mask).sum(-1).to(torch.float64)  # [..., K]
+    n_shared = shared(design.mask).sum(-1).to(torch.float64)  # [...]
+    n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
+    n_0 = design.num_samples.to(torch.float64)[..., None, None]
+    u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
+    a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
+    c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
+    if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):
+        raise ValueError("the psi_hat design of the reward-free data contains NaN or inf")
+    return j_from_moments(a_k, c_k, u_tilde.unsqueeze(-3), lam)
 
 
 class PolicyStack(ActionProbsPolicy):
