@@ -78,7 +78,7 @@ from torch_api.policies import LinearQPolicy  # noqa: E402
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 METHODS = {"AL": "active", "PL": "passive"}
 MEASURES = ("test_return", "exact_return", "percent_optimal")
-PER_TRIAL = (*MEASURES, "chosen", "sampling_epsilon", "j_mean")  # per-iteration lists over trials
+PER_TRIAL = (*MEASURES, "chosen", "sampling_rule", "j_mean")  # per-iteration lists over trials
 _ROLE_REWARDED, _ROLE_REWARD_FREE, _ROLE_TEST = 1, 2, 3  # environment seed streams
 
 
@@ -233,20 +233,7 @@ def run_chunk(chunk: Chunk) -> dict:
         "seconds": seconds,
         "optimal_exact_return": optimum,
         "iterations": [{"iteration": 0, "episodes_bought": 0, "rewarded_transitions": 0, **initial}]
-        + [
-            {
-                "iteration": rec.iteration,
-                "episodes_bought": rec.episodes_bought,
-                "rewarded_transitions": rec.rewarded_transitions,
-                "reward_free_transitions": rec.reward_free_transitions,
-                "chosen": rec.chosen,
-                "sampling_epsilon": rec.sampling_rule,
-                "j_mean": rec.j_mean,
-                "seconds": rec.seconds,
-                **rec.performance,
-            }
-            for rec in history
-        ],
+        + [rec.row() for rec in history],
     }
 
 
@@ -308,8 +295,8 @@ def write_csv(results: dict, path: Path) -> None:
                             "episodes_bought": it["episodes_bought"],
                             "rewarded_transitions": it["rewarded_transitions"],
                             "chosen": it["chosen"][t] if "chosen" in it else "",
-                            "sampling_epsilon": (
-                                it["sampling_epsilon"][t] if "sampling_epsilon" in it else ""
+                            "sampling_rule": (
+                                it["sampling_rule"][t] if "sampling_rule" in it else ""
                             ),
                             **{m: it[m][t] for m in MEASURES},
                             "j_mean": j_mean[t] if j_mean is not None else None,

@@ -222,20 +222,7 @@ def run_method(args: Args, mode: str) -> tuple[dict, dict]:
         "mode": mode,
         "seconds": seconds,
         "iterations": [{"iteration": 0, "rewarded_transitions": 0, **initial}]
-        + [
-            {
-                "iteration": rec.iteration,
-                "episodes_bought": rec.episodes_bought,
-                "rewarded_transitions": rec.rewarded_transitions,
-                "reward_free_transitions": rec.reward_free_transitions,
-                "chosen": rec.chosen,
-                "sampling_epsilon": rec.sampling_rule,
-                "j_mean": rec.j_mean,
-                "seconds": rec.seconds,
-                **rec.performance,
-            }
-            for rec in history
-        ],
+        + [rec.row() for rec in history],
     }
     return record, data_check
 
@@ -256,7 +243,7 @@ def write_csv(runs: dict, path: Path) -> None:
                 "trial",
                 "rewarded_transitions",
                 "chosen",
-                "sampling_epsilon",
+                "sampling_rule",
                 "steps_balanced",
                 "steps_balanced_greedy",
             ]
@@ -271,7 +258,7 @@ def write_csv(runs: dict, path: Path) -> None:
                             t,
                             it["rewarded_transitions"],
                             it["chosen"][t] if "chosen" in it else "",
-                            it["sampling_epsilon"][t] if "sampling_epsilon" in it else "",
+                            it["sampling_rule"][t] if "sampling_rule" in it else "",
                             it["steps_balanced"][t],
                             it["steps_balanced_greedy"][t],
                         ]

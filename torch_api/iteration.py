@@ -84,6 +84,20 @@ class IterationRecord:
     seconds: float
     theta: list = field(repr=False)
 
+    def row(self) -> dict:
+        """The iteration's numbers as one flat dict for JSON/CSV (θ and per-repeat J left out)."""
+        return {
+            "iteration": self.iteration,
+            "episodes_bought": self.episodes_bought,
+            "rewarded_transitions": self.rewarded_transitions,
+            "reward_free_transitions": self.reward_free_transitions,
+            "chosen": self.chosen,
+            "sampling_rule": self.sampling_rule,
+            "j_mean": self.j_mean,
+            "seconds": self.seconds,
+            **(self.performance or {}),
+        }
+
 
 class ActivePolicyIteration:
     """Sample-reuse least-squares policy iteration with active sampling-policy selection.
