@@ -42,7 +42,6 @@ trial) and ``fig8_performance.png`` (mean ± standard error over trials).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -58,6 +57,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
+from _cli import dataclass_parser  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
     CENTERS,
@@ -119,11 +119,7 @@ class Args:
 
 
 def parse_args(argv=None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for field in dataclasses.fields(Args):
-        parser.add_argument(
-            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
-        )
+    parser = dataclass_parser(Args, __doc__.split("\n")[0])
     args = Args(**vars(parser.parse_args(argv)))
     if args.schedule not in (*SCHEDULES, "both"):
         raise ValueError(f"--schedule must be one of {(*SCHEDULES, 'both')}, got {args.schedule}")

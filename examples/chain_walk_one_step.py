@@ -16,7 +16,6 @@ All trials run as one batch: the environment holds T·Z·K·M chains at once.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -30,6 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
+from _cli import dataclass_parser  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
@@ -78,11 +78,7 @@ class Args:
 
 
 def parse_args(argv=None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for field in dataclasses.fields(Args):
-        parser.add_argument(
-            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
-        )
+    parser = dataclass_parser(Args, __doc__.split("\n")[0])
     return Args(**vars(parser.parse_args(argv)))
 
 

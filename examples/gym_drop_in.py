@@ -32,7 +32,6 @@ greedy version (ε = 0).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import itertools
@@ -50,6 +49,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
+from _cli import dataclass_parser  # noqa: E402
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -99,11 +99,7 @@ class Args:
 
 
 def parse_args(argv=None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for field in dataclasses.fields(Args):
-        parser.add_argument(
-            f"--{field.name.replace('_', '-')}", type=type(field.default), default=field.default
-        )
+    parser = dataclass_parser(Args, __doc__.split("\n")[0])
     args = Args(**vars(parser.parse_args(argv)))
     if args.trials < 2:
         raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")

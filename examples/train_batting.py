@@ -54,11 +54,8 @@ cocks with probability 0.925 per step and hits the ball in about 0.1 % of episod
 
 from __future__ import annotations
 
-import argparse
-import ast
 import csv
 import dataclasses
-import inspect
 import json
 import logging
 import math
@@ -73,6 +70,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
+from _cli import dataclass_parser  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
@@ -130,30 +128,13 @@ class Args:
     """CPUs of a local Ray instance (0: all)"""
 
 
-def field_docs(cls) -> dict[str, str]:
-    """The string literal under each field of a dataclass (for --help)."""
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {
-        a.target.id: b.value.value
-        for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
-    }
-
-
 def parse_args(argv=None) -> Args:
-    docs = field_docs(Args)
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
+    parser = dataclass_parser(
+        Args,
+        __doc__.split("\n")[0],
         epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
         "cores). The paper's run: --trials 500 --schedule both",
     )
-    for field in dataclasses.fields(Args):
-        flag = f"--{field.name.replace('_', '-')}"
-        if field.type == "bool":
-            parser.add_argument(flag, action="store_true", help=docs.get(field.name))
-        else:
-            kind = type(field.default)
-            parser.add_argument(flag, type=kind, default=field.default, help=docs.get(field.name))
     args = Args(**vars(parser.parse_args(argv)))
     if args.schedule not in (*SCHEDULES, "both"):
         parser.error(f"--schedule must be decreasing, fixed or both, got {args.schedule!r}")
