@@ -1,6 +1,7 @@
 """Algorithm 2: batched J' against a per-candidate dense computation; reward-free invariance."""
 
 import numpy as np
+import pytest
 import torch
 
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
@@ -14,13 +15,13 @@ from torch_api.selector import SamplingPolicySelector, candidate_epsilons, j_val
 LAM = 1e-3
 
 
-def _setup(seed=0):
+def _setup(seed=0, mode="grouped"):
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
     theta = torch.linspace(-1, 1, 12, dtype=torch.float64)
     pi = LinearQPolicy(
         basis=basis, theta=theta, epsilon=0.15, generator=torch.Generator().manual_seed(seed)
     )
-    return basis, PsiHat(basis=basis, gamma=0.9, mode="grouped"), pi
+    return basis, PsiHat(basis=basis, gamma=0.9, mode=mode), pi
 
 
 def test_candidate_epsilons_follow_eq_59():
@@ -28,8 +29,10 @@ def test_candidate_epsilons_follow_eq_59():
     assert candidate_epsilons(0.05) == [0.05, 0.2, 0.55, 0.9]
 
 
-def test_j_values_match_algorithm_2_written_out():
-    _, psi, pi = _setup()
+@pytest.mark.parametrize("mode", ["grouped", "single", "knn"])
+def test_j_values_match_algorithm_2_written_out(mode):
+    """Pooled designs (grouped, k-NN psi_hat) and per-part designs (single) both match."""
+    _, psi, pi = _setup(mode=mode)
     env = ChainWalkEnv(batch_size=3, seed=0)
     cands = [pi.with_rule(epsilon=e) for e in (0.15, 0.6, 1.0)]
     z, k, m, n = 2, 3, 3, 6

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 from torch import nn
 
@@ -53,22 +56,57 @@ class GaussianActionBasis(nn.Module):
         self.num_actions = int(num_actions)
         self.num_kernels = centers.shape[0] + 1
         self.num_features = self.num_actions * self.num_kernels
+        self._kernel_memo: dict | None = None  # see reuse_kernels
 
     @property
     def obs_dim(self) -> int:
         return self.centers.shape[1]
 
     def kernels(self, obs: torch.Tensor) -> torch.Tensor:
-        """State features ``[k_1(s), ..., k_C(s), 1]``: obs ``[..., d]`` -> ``[..., C + 1]``."""
+        """State features ``[k_1(s), ..., k_C(s), 1]``: obs ``[..., d]`` -> ``[..., C + 1]``.
+
+        Inside :meth:`reuse_kernels` the result for a given tensor object is computed once.
+        """
         if obs.shape[-1] != self.obs_dim:
             raise ValueError(
                 f"obs must have a trailing dimension of {self.obs_dim}, "
                 f"got shape {tuple(obs.shape)}"
             )
+        if self._kernel_memo is not None:
+            hit = self._kernel_memo.get(id(obs))
+            if hit is not None and hit[0] is obs:
+                return hit[1]
         centers = self.centers.to(device=obs.device, dtype=obs.dtype)
-        sq_dist = (obs.unsqueeze(-2) - centers).pow(2).sum(-1)
-        gauss = torch.exp(-sq_dist / (2.0 * self.tau**2))
-        return torch.cat([gauss, torch.ones_like(gauss[..., :1])], dim=-1)
+        num_centers = centers.shape[0]
+        # ||s - c||² one coordinate at a time on [..., C] (a [..., C, d] intermediate reduced
+        # over its short last dim is several times slower); each entry is computed on its own,
+        # so the result does not depend on the batch layout.
+        sq_dist = obs.new_zeros(*obs.shape[:-1], num_centers)
+        for dim in range(self.obs_dim):
+            sq_dist.add_((obs[..., dim, None] - centers[:, dim]).square_())
+        out = obs.new_empty(*obs.shape[:-1], num_centers + 1)
+        torch.exp(sq_dist.mul_(-1.0 / (2.0 * self.tau**2)), out=out[..., :num_centers])
+        out[..., num_centers] = 1.0
+        if self._kernel_memo is not None:
+            self._kernel_memo[id(obs)] = (obs, out)  # holds obs: its id stays unique meanwhile
+        return out
+
+    @contextmanager
+    def reuse_kernels(self) -> Iterator[None]:
+        """Compute the kernels of each observation tensor once inside the block.
+
+        :func:`~torch_api.design.build_design` evaluates the kernels of the same observations
+        for the evaluation policy's probabilities and for psi_hat; inside this block the second
+        call returns the first call's result. Tensors are matched by identity (the block keeps
+        them alive, so an identity cannot be reused by another tensor meanwhile); do not modify
+        an observation tensor in place inside the block.
+        """
+        outer = self._kernel_memo
+        self._kernel_memo = {} if outer is None else outer
+        try:
+            yield
+        finally:
+            self._kernel_memo = outer
 
     def phi_all(self, obs: torch.Tensor) -> torch.Tensor:
         """Basis for every action: obs ``[..., d]`` -> ``[..., A, B]``."""

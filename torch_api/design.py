@@ -7,6 +7,7 @@ format of :mod:`torch_api.data` for one evaluation policy.
 from __future__ import annotations
 
 import warnings
+from contextlib import nullcontext
 from typing import NamedTuple
 
 import torch
@@ -69,30 +70,34 @@ def build_design(
     Returns:
         :class:`Design` with ``n = M N``.
     """
-    obs = episodes["observation"]
-    action = episodes["action"]
-    next_obs = episodes["next", "observation"]
     mask = episodes["mask"]
     terminated = episodes.get(("next", "terminated"), None)
-    target = policy.action_probs(obs)
-    weights = per_decision_weights(
-        taken_probs(target, action),
-        taken_probs(episodes["sample_probs"], action).to(torch.float64),
-        mask,
-    )
-    next_probs = policy.action_probs(next_obs)
 
-    def flat(t: torch.Tensor, tail: int) -> torch.Tensor:
+    def flat(t: torch.Tensor, tail: int) -> torch.Tensor:  # [..., M, N, *tail] -> [..., M·N, *]
         lead = t.shape[: t.ndim - tail]
         return t.reshape(*lead[:-2], lead[-2] * lead[-1], *t.shape[t.ndim - tail :])
 
-    x = psi(
-        flat(obs, 1),
-        flat(action, 0),
-        flat(next_obs, 1),
-        flat(next_probs, 1),
-        None if terminated is None else flat(terminated, 0),
-        flat(mask, 0),
+    # The same float64 tensors go to the policy and to psi_hat, so that a basis with
+    # ``reuse_kernels`` evaluates the state kernels of each observation once, not twice.
+    obs = flat(episodes["observation"], 1).to(torch.float64)
+    next_obs = flat(episodes["next", "observation"], 1).to(torch.float64)
+    action = flat(episodes["action"], 0)
+    reuse = getattr(psi.basis, "reuse_kernels", None)
+    with reuse() if reuse is not None else nullcontext():
+        target = policy.action_probs(obs).reshape(*mask.shape, -1)
+        next_probs = policy.action_probs(next_obs)
+        x = psi(
+            obs,
+            action,
+            next_obs,
+            next_probs,
+            None if terminated is None else flat(terminated, 0),
+            flat(mask, 0),
+        )
+    weights = per_decision_weights(
+        taken_probs(target, episodes["action"]),
+        taken_probs(episodes["sample_probs"], episodes["action"]).to(torch.float64),
+        mask,
     )
     flat_mask = flat(mask, 0)
     flat_weights = flat(weights, 0)

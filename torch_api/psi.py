@@ -206,6 +206,15 @@ class PsiHat(nn.Module):
         self.mode = mode
         self.k = int(k)
 
+    @property
+    def row_local(self) -> bool:
+        """Whether a sample's psi_hat row depends on that sample alone (``mode="single"``).
+
+        Grouped and k-NN rows average over other samples of the same data set, so their data
+        set must be passed whole.
+        """
+        return self.mode == "single"
+
     def forward(
         self,
         obs: torch.Tensor,

@@ -76,46 +76,63 @@ def j_values(
         )
     cand = candidate_episodes.select(*_STATE_ACTION_KEYS, strict=False)
     *lead, num_candidates, num_episodes, num_steps = cand.shape
-    pool = cand.reshape(*lead, num_candidates * num_episodes, num_steps)
+    prev = None
     if earlier_episodes is not None and earlier_episodes.shape[0] > 0:
         if earlier_episodes.shape[-1] != num_steps:
             raise ValueError(
                 f"earlier episodes have N = {earlier_episodes.shape[-1]} steps, candidates "
                 f"N = {num_steps}"
             )
-        prev = earlier_episodes.select(*pool.keys(include_nested=True, leaves_only=True))
-        # earlier sets [*T, M', N] are shared by every repeat: broadcast over the other dims
-        own_lead = prev.batch_dims - 2
-        prev = prev.reshape(
-            *prev.shape[:own_lead], *([1] * (len(lead) - own_lead)), *prev.shape[-2:]
-        )
-        prev = prev.expand(*lead, *prev.shape[-2:]).clone()
-        pool = torch.cat([pool, prev], dim=-2)
+        prev = earlier_episodes.select(*cand.keys(include_nested=True, leaves_only=True))
     # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
     # the collapse warning is for fits on rewarded data, not for this reward-free pool.
-    design = build_design(pool, policy, psi, min_ess_fraction=0.0)
-    # Moments, unnormalised: each candidate's own rows, and once per repeat the earlier sets'
-    # rows, which every Π_k shares; Ũ over D̄_0 is then their sum, with no pass of its own.
-    split = num_candidates * num_episodes * num_steps
-    axis = len(lead)  # the sample axis of the pooled design
-
-    def own(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
-        return t.narrow(axis, 0, split).reshape(
-            *lead, num_candidates, num_episodes * num_steps, *t.shape[axis + 1 :]
+    if prev is None or psi.row_local:
+        # Each row's psi_hat depends on the row alone: the earlier sets, which every Π_k and
+        # every repeat shares, get their design once, not once per repeat.
+        own = build_design(cand, policy, psi, min_ess_fraction=0.0)  # [..., K, M·N, B]
+        own_x, own_w, n_own = own.x, own.w, own.num_samples.to(torch.float64)
+        shared = None if prev is None else build_design(prev, policy, psi, min_ess_fraction=0.0)
+    else:
+        # Grouped or k-NN psi_hat averages over the data set D̄_0 of each repeat: pool first.
+        own_lead = prev.batch_dims - 2  # earlier sets [*T, M', N]: broadcast over the repeats
+        prev = prev.reshape(*prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:])
+        pool = torch.cat(
+            [
+                cand.reshape(*lead, num_candidates * num_episodes, num_steps),
+                prev.expand(*lead, *prev.shape[-2:]).clone(),
+            ],
+            dim=-2,
         )
+        design = build_design(pool, policy, psi, min_ess_fraction=0.0)
+        split = num_candidates * num_episodes * num_steps
 
-    def shared(t: torch.Tensor) -> torch.Tensor:  # [..., M'·N, *]
-        return t.narrow(axis, split, t.shape[axis] - split)
+        def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
+            return t.narrow(len(lead), 0, split).reshape(
+                *lead, num_candidates, num_episodes * num_steps, *t.shape[len(lead) + 1 :]
+            )
 
-    w_own, w_shared = own(design.w), shared(design.w)
-    a_own = weighted_moment(own(design.x), w_own)  # [..., K, B, B]
-    c_own = weighted_moment(own(design.x), w_own.pow(2))
-    a_shared = weighted_moment(shared(design.x), w_shared)  # [..., B, B]
-    c_shared = weighted_moment(shared(design.x), w_shared.pow(2))
-    n_own = own(design.mask).sum(-1).to(torch.float64)  # [..., K]
-    n_shared = shared(design.mask).sum(-1).to(torch.float64)  # [...]
+        own_x, own_w = own_rows(design.x), own_rows(design.w)
+        n_own = own_rows(design.mask).sum(-1).to(torch.float64)
+        shared = design._replace(
+            x=design.x.narrow(len(lead), split, design.x.shape[len(lead)] - split),
+            w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
+            num_samples=design.num_samples - n_own.sum(-1),
+        )
+    # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
+    # D̄_0 is their sum, with no pass of its own.
+    a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
+    c_own = weighted_moment(own_x, own_w.pow(2))
+    a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
+    n_shared = n_own.new_zeros(())
+    if shared is not None:
+        stretch = [1] * (len(lead) + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
+        a_shared = weighted_moment(shared.x, shared.w)
+        a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
+        c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
+        n_shared = shared.num_samples.to(torch.float64)
+        n_shared = n_shared.reshape(*n_shared.shape, *stretch)
     n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
-    n_0 = design.num_samples.to(torch.float64)[..., None, None]
+    n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
     u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
     a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
     c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
