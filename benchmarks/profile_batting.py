@@ -3,17 +3,20 @@
 Runs ``ActivePolicyIteration`` (mode active, the 'decreasing' schedule, Z = 5, K = 4) on T
 batched batting trials and splits its wall time, with timers wrapped around:
 
-* physics: MuJoCo's native rollouts inside the env (``BattingSimulator._run``), also counted in
-  coarse and fine physics steps;
+* physics: MuJoCo's native rollouts inside the env (``BattingSimulator._run``), counted in
+  coarse and fine physics steps by a :class:`~envs.batting.PhysicsAudit`;
 * env Python: the rest of ``BattingEnv._reset`` / ``_step`` (noise, gap prediction, look-ahead,
   TensorDicts);
 * algebra: psi_hat, importance weights, J and the weighted solves (``build_design``,
   ``j_criterion``, ``weighted_ridge``);
 * TorchRL / collection: the remainder (``env.rollout``, policies, buffers, checks).
 
-Next to it, in the same run, the same numbers of coarse and fine physics steps done by raw
-MuJoCo (``mujoco.batch.Batch`` on 2 threads, 64 simulations; and a 1-thread ``mj_step`` loop):
-the physics floor of the run.
+Next to it, in the same invocation, the physics floor of the run: bare MuJoCo replaying a 5 %
+sample of the run's own rollouts (same start states, torques and step counts;
+``benchmarks/_physics_floor.py``) with ``mujoco.batch.Batch`` on 2 threads, and with a 1-thread
+``mj_step`` loop, scaled to the counted steps. For comparison it also times the proxy floor used
+before (a free swing from the initial state for the same step counts), which leaves out the
+solver work of joint limits and contacts.
 
     python benchmarks/profile_batting.py --trials 8
 """
@@ -28,14 +31,15 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
-from bench_batting_env import raw_batch_run, raw_run
+from _physics_floor import replay_batch, replay_loop
+from bench_batting_env import raw_batch_run
 
 import torch_api.design
 import torch_api.iteration
 import torch_api.selector
 import torch_api.solve
 from envs import batting
-from envs.batting import BASIS_TAU, BattingEnv, basis_centers
+from envs.batting import BASIS_TAU, BattingEnv, PhysicsAudit, basis_centers
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
 
@@ -69,15 +73,11 @@ def wrap(owner, attr: str, name: str, *, outermost: bool = False) -> None:
     setattr(owner, attr, wrapper)
 
 
-STEPS = {"coarse": 0, "fine": 0}
-
-
-def count_physics() -> None:
-    """Time ``BattingSimulator._run`` and count the physics steps it advances."""
+def time_physics() -> None:
+    """Time ``BattingSimulator._run``, the env's MuJoCo rollouts."""
     original = batting.BattingSimulator._run
 
     def run(self, batch, ids, torque, nstep, *args, **kwargs):
-        STEPS["fine" if batch is self.fine else "coarse"] += len(ids) * nstep
         with timed("physics"):
             return original(self, batch, ids, torque, nstep, *args, **kwargs)
 
@@ -85,7 +85,7 @@ def count_physics() -> None:
 
 
 def instrument() -> None:
-    count_physics()
+    time_physics()
     wrap(BattingEnv, "_step", "env")
     wrap(BattingEnv, "_reset", "env")
     for module in (torch_api.iteration, torch_api.selector):
@@ -103,13 +103,16 @@ def main() -> dict:
     parser.add_argument("--trials", type=int, default=8)
     parser.add_argument("--iterations", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--nthread", type=int, default=2, help="MuJoCo threads of the env")
+    parser.add_argument("--audit", type=float, default=0.05, help="rollouts sampled for replay")
     parser.add_argument("--out", default="results/profile_batting.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     envs: list[BattingEnv] = []
+    audit = PhysicsAudit(args.audit, seed=0)
 
     def make(rows: int) -> BattingEnv:
-        envs.append(BattingEnv(batch_size=rows))
+        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, audit=audit))
         return envs[-1]
 
     instrument()
@@ -127,11 +130,12 @@ def main() -> dict:
     start = time.perf_counter()
     api.run()
     wall = time.perf_counter() - start
-    coarse, fine = STEPS["coarse"], STEPS["fine"]
+    coarse, fine = audit.steps["coarse"], audit.steps["fine"]
     env_python = TIMERS["env"] - TIMERS["physics"]
     torchrl = wall - TIMERS["env"] - TIMERS["algebra"]
-    raw2 = raw_batch_run(envs[0], coarse, fine, nthread=2)
-    raw1 = raw_run(envs[0], coarse, fine)
+    raw2 = sum(replay_batch(audit, nthread=2).values())
+    raw1 = sum(replay_loop(audit).values())
+    proxy2 = raw_batch_run(envs[0], coarse, fine, nthread=2)
     rows = {
         "physics (MuJoCo rollouts in the env)": TIMERS["physics"],
         "env Python (noise, gap prediction, look-ahead, TensorDicts)": env_python,
@@ -147,8 +151,10 @@ def main() -> dict:
         print(f"| {name} | {seconds:.2f} | {seconds / wall:.0%} |")
     print(f"| **total** | {wall:.2f} | 100% |")
     print(
-        f"\nRaw MuJoCo for the same steps: {raw2:.2f} s (Batch, 2 threads), {raw1:.2f} s "
-        f"(mj_step loop, 1 thread). Wall / raw physics floor (2 threads): {wall / raw2:.2f}×."
+        f"\nBare MuJoCo replaying the run's physics steps ({args.audit:.0%} sample): {raw2:.2f} s "
+        f"(Batch, 2 threads), {raw1:.2f} s (mj_step loop, 1 thread). In-env physics / floor: "
+        f"{TIMERS['physics'] / raw2:.2f}×; wall / floor (2 threads): {wall / raw2:.2f}×. "
+        f"(Proxy floor of a free swing from the initial state: {proxy2:.2f} s.)"
     )
     payload = {
         "trials": args.trials,
@@ -158,6 +164,7 @@ def main() -> dict:
         "fine_steps": fine,
         "raw_batch_2_threads_s": raw2,
         "raw_loop_1_thread_s": raw1,
+        "proxy_free_swing_2_threads_s": proxy2,
         "wall_over_floor": wall / raw2,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -88,6 +88,7 @@ __all__ = [
     "BattingEnv",
     "BattingGymEnv",
     "BattingSimulator",
+    "PhysicsAudit",
     "flight_carry",
 ]
 
@@ -182,6 +183,61 @@ def _positive_dt(value: float, name: str) -> float:
     return value
 
 
+class PhysicsAudit:
+    """Counts the physics steps of one or more simulators and keeps a random sample to replay.
+
+    The physics floor of a run, the time bare MuJoCo needs for the same physics steps, depends
+    on the states stepped (joint limits and contacts cost solver work), so it is estimated by
+    replaying a uniform sample of the run's rollouts (start state, torque, number of steps)
+    with nothing else around them and scaling by the counted steps
+    (``benchmarks/_physics_floor.py``). The sampling draws from a stream of its own and never
+    touches the environment's.
+
+    Args:
+        fraction: probability with which each simulation of each rollout call is sampled
+            (0: count only).
+        seed: seed of the sampling stream.
+
+    Attributes:
+        steps: physics steps counted, ``{"coarse": int, "fine": int}``.
+        samples: per kind, a list of ``(states [r, nstate], torques [r, 2], nstep)``.
+    """
+
+    KINDS = ("coarse", "fine")
+
+    def __init__(self, fraction: float = 0.0, seed: int = 0) -> None:
+        if not 0.0 <= float(fraction) <= 1.0:
+            raise ValueError(f"fraction must lie in [0, 1], got {fraction!r}")
+        self.fraction = float(fraction)
+        self.rng = np.random.default_rng(seed)
+        self.steps = dict.fromkeys(self.KINDS, 0)
+        self.samples: dict[str, list] = {kind: [] for kind in self.KINDS}
+
+    def record(
+        self, kind: str, states: np.ndarray, ids: np.ndarray, torque: np.ndarray, nstep: int
+    ) -> None:
+        """Count rollouts of ``nstep`` steps of simulations ``ids`` and sample some of them.
+
+        ``states`` [E, nstate] are all simulations' states before the call, ``torque``
+        [len(ids), 2] the torques of the simulations ``ids``.
+        """
+        self.steps[kind] += len(ids) * nstep
+        if self.fraction > 0.0:
+            keep = self.rng.random(len(ids)) < self.fraction
+            if keep.any():
+                self.samples[kind].append((states[ids[keep]], torque[keep].copy(), nstep))
+
+    def merge(self, other: PhysicsAudit) -> PhysicsAudit:
+        """Add another audit's counts and samples to this one (returns self)."""
+        for kind in self.KINDS:
+            self.steps[kind] += other.steps[kind]
+            self.samples[kind].extend(other.samples[kind])
+        return self
+
+    def sampled_steps(self, kind: str) -> int:
+        return sum(len(torque) * nstep for _, torque, nstep in self.samples[kind])
+
+
 class BattingSimulator:
     """Batched MuJoCo physics of the batting arm, one control step at a time (numpy).
 
@@ -203,6 +259,7 @@ class BattingSimulator:
         record: keep the last control step's ``qpos`` in ``last_qpos``, one per ``fine_dt``
             (interpolated linearly across coarse steps; for pictures; slow).
         xml_path: the MJCF file.
+        audit: a :class:`PhysicsAudit` to count (and sample) every physics rollout into.
 
     Example:
         >>> sim = BattingSimulator(num_envs=2)
@@ -224,6 +281,7 @@ class BattingSimulator:
         nthread: int | None = None,
         record: bool = False,
         xml_path: str | Path = XML_PATH,
+        audit: PhysicsAudit | None = None,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
@@ -236,6 +294,7 @@ class BattingSimulator:
         self.n_coarse = round(CONTROL_DT / self.coarse_dt)  # physics steps per coarse control step
         self.n_fine = round(CONTROL_DT / self.fine_dt)  # physics steps per fine control step
         self.record = bool(record)
+        self.audit = audit
 
         spec = mujoco.MjSpec.from_file(str(xml_path))
         spec.body("ball").gravcomp = 1.0  # see below; compiled in, as MuJoCo counts such bodies
@@ -380,6 +439,9 @@ class BattingSimulator:
         ``qvel`` if ``qpos``, the integration state (key ``_STATE_SPEC.value``) if ``states``
         (record k: the state after physics step k).
         """
+        if self.audit is not None:
+            kind = "fine" if batch is self.fine else "coarse"
+            self.audit.record(kind, batch.state, ids, torque, nstep)
         control = np.broadcast_to(torque[:, None, :], (len(ids), nstep, 2))
         record = ["sensordata"]
         if qpos:
@@ -732,6 +794,7 @@ class BattingEnv(EnvBase):
         noise_variance: variance of the torque noise per joint ((N m)^2).
         scheme, coarse_dt, fine_dt, margin, coarse_integrator, nthread: fidelity knobs of
             :class:`BattingSimulator`.
+        audit: a :class:`PhysicsAudit` counting (and sampling) the env's physics rollouts.
 
     Example:
         >>> env = BattingEnv(batch_size=4, seed=0)
@@ -754,6 +817,7 @@ class BattingEnv(EnvBase):
         margin: float = MARGIN,
         coarse_integrator: str = COARSE_INTEGRATOR,
         nthread: int | None = None,
+        audit: PhysicsAudit | None = None,
     ) -> None:
         if isinstance(batch_size, int):
             batch_size = (batch_size,)
@@ -780,6 +844,7 @@ class BattingEnv(EnvBase):
             margin=margin,
             coarse_integrator=coarse_integrator,
             nthread=nthread,
+            audit=audit,
         )
         self._steps = np.zeros(batch_size[0], dtype=np.int64)
         self.last_torque = np.zeros((batch_size[0], 2))  # (N m) applied in the last step

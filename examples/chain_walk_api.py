@@ -109,9 +109,12 @@ class Args:
     threads: int = 0
     """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
     backend: str = "local"
-    """where the chunks of trials run: 'local' (here, one after another) or 'ray'"""
+    """where the chunks of trials run: 'local' (here, one after another), 'processes' (a pool
+    of local worker processes) or 'ray'"""
     chunks: int = 1
     """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
+    workers: int = 0
+    """processes backend: worker processes (0: one per CPU core)"""
     ray_address: str = ""
     """Ray cluster to join (e.g. 'auto'); '' starts a local Ray instance"""
     ray_cpus: int = 0
@@ -402,6 +405,7 @@ def main(argv=None) -> dict:
         run_chunk,
         chunks,
         backend=args.backend,
+        workers=args.workers or None,
         address=args.ray_address or None,
         num_cpus=args.ray_cpus or None,
     )

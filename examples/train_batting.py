@@ -61,6 +61,7 @@ import logging
 import math
 import os
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,11 +78,18 @@ from envs.batting import (  # noqa: E402
     MAX_STEPS,
     N_ACTIONS,
     BattingEnv,
+    PhysicsAudit,
     basis_centers,
 )
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
-from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
+from torch_api.dispatch import (  # noqa: E402
+    BACKENDS,
+    run_chunks,
+    split_trials,
+    threads_per_worker,
+    trial_seeds,
+)
 from torch_api.iteration import ActivePolicyIteration, derive_seed  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
 
@@ -119,9 +127,15 @@ class Args:
     stop_after_checkpoints: int = 0
     """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
     backend: str = "local"
-    """where the chunks of trials run: local (here, one after another) or ray"""
+    """where the chunks of trials run: local (here, one after another), processes (a pool of
+    local worker processes) or ray"""
     chunks: int = 1
     """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
+    workers: int = 0
+    """processes backend: worker processes (0: one per CPU core)"""
+    physics_audit: float = 0.0
+    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
+    physics steps are counted either way"""
     ray_address: str = ""
     """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
     ray_cpus: int = 0
@@ -140,8 +154,10 @@ def parse_args(argv=None) -> Args:
         parser.error(f"--schedule must be decreasing, fixed or both, got {args.schedule!r}")
     if not 1 <= args.iterations <= 7:
         parser.error(f"--iterations must lie in 1..7, got {args.iterations}")
-    if args.trials < 1 or args.repeats < 1 or args.episodes < 0:
-        parser.error("--trials and --repeats must be >= 1 and --episodes >= 0")
+    if args.trials < 1 or args.repeats < 1 or args.episodes < 0 or args.workers < 0:
+        parser.error("--trials and --repeats must be >= 1, --episodes and --workers >= 0")
+    if not 0.0 <= args.physics_audit <= 1.0:
+        parser.error(f"--physics-audit must lie in [0, 1], got {args.physics_audit}")
     if args.backend not in BACKENDS:
         parser.error(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
     if not 1 <= args.chunks <= args.trials:
@@ -173,13 +189,14 @@ class TestPerformance:
     resumed run measures exactly what an uninterrupted one would.
     """
 
-    def __init__(self, trials: int) -> None:
+    def __init__(self, trials: int, make_env=BattingEnv) -> None:
         self.trials = trials
+        self.make_env = make_env
         self.env: BattingEnv | None = None
 
     def __call__(self, policy: LinearQPolicy, seed: int) -> dict:
         if self.env is None:
-            self.env = BattingEnv(batch_size=self.trials * TEST_EPISODES, seed=seed)
+            self.env = self.make_env(batch_size=self.trials * TEST_EPISODES, seed=seed)
         if hasattr(self.env, "set_block_seeds"):
             self.env.set_block_seeds(
                 [derive_seed(g.initial_seed(), 0, "evaluation") for g in policy.block_generators]
@@ -231,6 +248,8 @@ class Chunk:
     checkpoint: Path
     counter: CheckpointCounter
     progress: bool = True
+    physics_threads: int | None = None
+    """MuJoCo threads of the chunk's environments (None: every core)"""
 
 
 def checkpoint_name(schedule: str, mode: str, chunk: int, chunks: int) -> str:
@@ -244,18 +263,22 @@ def chunk_seed(seed: int, first_trial: int) -> int:
     return int(np.random.SeedSequence([seed, first_trial]).generate_state(1, np.uint64)[0] >> 1)
 
 
-def make_run(chunk: Chunk) -> InterruptibleRun:
+def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRun:
     """One ActivePolicyIteration run of the chunk's trials, checkpointed to ``chunk.checkpoint``.
 
     Trial t's seed is ``derive_seed(seed, t, "trial")`` in every chunking. The run's own seed
     (the environments' single stream where they lack ``set_block_seeds``) is ``--seed`` for the
     chunk holding trial 0 (an unchunked run) and derived from the chunk's first trial for the
-    others, so no two chunks replay the same noise.
+    others, so no two chunks replay the same noise. Every environment counts its physics
+    into ``audit``.
     """
     args = chunk.args
 
-    def env(batch: int) -> BattingEnv:
-        return BattingEnv(batch_size=batch)  # re-seeded by the loop every iteration
+    def env(batch_size: int, seed: int | None = None) -> BattingEnv:
+        # the rewarded and reward-free envs are re-seeded by the loop every iteration
+        return BattingEnv(
+            batch_size=batch_size, seed=seed, nthread=chunk.physics_threads, audit=audit
+        )
 
     first = chunk.trials[0]
     seed = args.seed if first == 0 else chunk_seed(args.seed, first)
@@ -270,7 +293,7 @@ def make_run(chunk: Chunk) -> InterruptibleRun:
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
-        evaluate=TestPerformance(len(chunk.trials)),
+        evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),
         seed=seed,
         trial_seeds=trial_seeds(args.seed, chunk.trials),
@@ -283,18 +306,28 @@ def make_run(chunk: Chunk) -> InterruptibleRun:
 
 
 def run_chunk(chunk: Chunk) -> dict:
-    """Run (or resume, with ``--resume``) one chunk; its history as :func:`summarise` lists."""
-    api = make_run(chunk)
+    """Run (or resume, with ``--resume``) one chunk; its history as :func:`summarise` lists,
+    plus ``"physics"``: the :class:`PhysicsAudit` of this invocation's physics steps."""
+    # the audit's sampling stream: its own per chunk (keyed by the checkpoint's name)
+    name_key = zlib.crc32(chunk.checkpoint.name.encode())
+    audit_seed = int(np.random.SeedSequence([chunk.args.seed, name_key]).generate_state(1)[0])
+    audit = PhysicsAudit(chunk.args.physics_audit, seed=audit_seed)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # also in worker processes
+    api = make_run(chunk, audit)
     if chunk.args.resume and chunk.checkpoint.exists():
         api.load(chunk.checkpoint)
         print(f"resumed {chunk.checkpoint} at iteration {api.iteration}/{len(chunk.schedule)}")
     api.run(progress=chunk.progress)
-    return summarise(api.history, chunk.mode)
+    return summarise(api.history, chunk.mode) | {"physics": audit}
 
 
 def concatenate_chunks(parts: list[dict]) -> dict:
-    """The chunks of one run as one run: per-trial lists concatenated, seconds summed."""
+    """The chunks of one run as one run: per-trial lists concatenated, seconds summed, physics
+    audits merged."""
     run = dict(parts[0])
+    run["physics"] = PhysicsAudit()
+    for part in parts:
+        run["physics"].merge(part["physics"])
     for key in PER_TRIAL:
         run[key] = [
             None if its[0] is None else [x for part in its for x in part]
@@ -423,6 +456,11 @@ def main(argv=None) -> dict:
     started = time.perf_counter()
     jobs = [(name, mode) for name in names for mode in MODES]
     pieces = split_trials(args.trials, args.chunks)
+    # MuJoCo threads per chunk: every core in-process, the cores shared out among processes,
+    # one per Ray task (Ray gives each task one CPU)
+    physics_threads = {"local": None, "ray": 1}.get(
+        args.backend, threads_per_worker(args.workers or os.cpu_count() or 1)
+    )
     chunks = [
         Chunk(
             args=args,
@@ -432,6 +470,7 @@ def main(argv=None) -> dict:
             checkpoint=ckpt_dir / checkpoint_name(name, mode, c, args.chunks),
             counter=counter,
             progress=args.backend == "local",
+            physics_threads=physics_threads,
         )
         for name, mode in jobs
         for c, trials in enumerate(pieces)
@@ -440,6 +479,7 @@ def main(argv=None) -> dict:
         run_chunk,
         chunks,
         backend=args.backend,
+        workers=args.workers or None,
         address=args.ray_address or None,
         num_cpus=args.ray_cpus or None,
     )
@@ -447,8 +487,13 @@ def main(argv=None) -> dict:
     for j, (name, mode) in enumerate(jobs):
         entry = results.setdefault(name, {"schedule": schedule_of(args, name), "runs": {}})
         entry["runs"][mode] = concatenate_chunks(parts[j * args.chunks : (j + 1) * args.chunks])
+    audit = PhysicsAudit()
     for res in results.values():
         runs = res["runs"]
+        for run in runs.values():
+            physics = run.pop("physics")
+            run["physics_steps"] = dict(physics.steps)
+            audit.merge(physics)
         test = paired_test(runs["active"]["performance"][-1], runs["passive"]["performance"][-1])
         res["paired_t_test_last"] = test
     wall = time.perf_counter() - started
@@ -459,12 +504,16 @@ def main(argv=None) -> dict:
         "args": dataclasses.asdict(args),
         "wall_seconds": wall,
         "test_episodes": TEST_EPISODES,
+        "physics_steps": dict(audit.steps),
         "results": results,
     }
     (out / "train_batting.json").write_text(json.dumps(payload))
+    payload["physics_audit"] = audit  # for benchmarks/bench_figure10.py; not in the JSON
     write_csv(results, out / "train_batting.csv")
     plot(results, out / "fig10_performance.png")
-    print(f"\nwall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")
+    steps = audit.steps
+    print(f"\nphysics: {steps['coarse']:,} coarse + {steps['fine']:,} fine MuJoCo steps")
+    print(f"wall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")
     return payload
 
 

@@ -22,6 +22,7 @@ from envs.batting import (
     BattingEnv,
     BattingGymEnv,
     BattingSimulator,
+    PhysicsAudit,
     flight_carry,
 )
 
@@ -261,6 +262,26 @@ def test_same_seed_same_episode_different_seed_differs():
     a, b, c = run(5), run(5), run(6)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
     assert not torch.equal(a[0], c[0])
+
+
+def test_physics_audit_counts_every_step_and_changes_nothing():
+    plain = BattingEnv(batch_size=8, seed=5)
+    audit = PhysicsAudit(fraction=0.3, seed=1)
+    audited = BattingEnv(batch_size=8, seed=5, audit=audit)
+    a, b = random_episodes(plain, seed=0), random_episodes(audited, seed=0)
+    for x, y in zip(a, b, strict=True):
+        assert torch.equal(x, y)
+    sim = audited.sim
+    assert audit.steps["coarse"] + audit.steps["fine"] == int(sim.physics_steps.sum())
+    assert audit.steps["fine"] == int(sim.fine_steps.sum())
+    for kind in PhysicsAudit.KINDS:  # sampled: rows of start states with their torques
+        for states, torques, nstep in audit.samples[kind]:
+            assert states.shape == (len(torques), sim.main.nstate) and nstep >= 1
+    assert 0 < audit.sampled_steps("coarse") < audit.steps["coarse"]
+    merged = PhysicsAudit().merge(audit).merge(audit)
+    assert merged.steps["coarse"] == 2 * audit.steps["coarse"]
+    with pytest.raises(ValueError, match="fraction"):
+        PhysicsAudit(fraction=1.5)
 
 
 def test_partial_reset():

@@ -14,7 +14,11 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
     [
         (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
-        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "Wall / raw physics"),
+        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "wall / floor (2 threads)"),
+        (
+            ["bench_figure10.py", "--trials", "2", "--iterations", "1", "--audit", "0.2"],
+            "| processes (2 workers) |",
+        ),
         (["bench_collection.py", "--sizes", "4", "--budget", "0.01"], "| Collector / rollout"),
     ],
 )

@@ -89,6 +89,15 @@ def _concatenate(parts: list[dict]) -> dict:
     }
 
 
+def test_processes_backend_keeps_chunk_order_and_gives_the_local_numbers():
+    assert run_chunks(sum, [[1, 2], [3], [4, 5, 6]], backend="processes", workers=2) == [3, 3, 15]
+    assert run_chunks(sum, [], backend="processes") == []
+    chunks = [list(t) for t in split_trials(4, 2)]
+    assert run_chunks(run_trials, chunks, backend="processes", workers=2) == run_chunks(
+        run_trials, chunks
+    )
+
+
 def test_local_chunks_equal_one_batch():
     whole = run_trials([0, 1, 2, 3])
     chunked = run_chunks(run_trials, [list(t) for t in split_trials(4, 3)])

@@ -143,6 +143,16 @@ def test_chain_walk_api_chunks_give_the_same_numbers(chain_walk_one_chunk, tmp_p
     assert len(chunked["results"]["decreasing"]["runs"]["AL"]["iterations"][-1]["chosen"]) == 3
 
 
+def test_chain_walk_api_in_worker_processes_gives_the_local_numbers(chain_walk_one_chunk, tmp_path):
+    _run(
+        "chain_walk_api.py",
+        *CHUNK_RUN,
+        *("--backend", "processes", "--workers", "2", "--chunks", "2", "--out-dir", str(tmp_path)),
+    )
+    in_processes = json.loads((tmp_path / "chain_walk_api.json").read_text())
+    assert _without_times(in_processes) == _without_times(chain_walk_one_chunk)
+
+
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 
 

@@ -121,3 +121,21 @@ def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
     assert "decreasing_active_chunk2of2.pt" not in second.stdout  # nothing to resume there
     expected = numbers(json.loads((reference / "train_batting.json").read_text()))
     assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+
+
+def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrupted, tmp_path):
+    """--backend processes: chunks in two worker processes, the numbers of one batch; every
+    run's physics steps counted (and, with --physics-audit, sampled without changing a thing)."""
+    reference, proc = uninterrupted
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    flags = ("--backend", "processes", "--workers", "2", "--chunks", "2", "--physics-audit", "0.5")
+    done = run_script(tmp_path, *flags)
+    assert done.returncode == 0, done.stderr[-3000:]
+    expected = json.loads((reference / "train_batting.json").read_text())
+    payload = json.loads((tmp_path / "train_batting.json").read_text())
+    assert numbers(payload) == numbers(expected)
+    assert payload["physics_steps"] == expected["physics_steps"]
+    runs = payload["results"]["decreasing"]["runs"].values()
+    for kind in ("coarse", "fine"):
+        assert payload["physics_steps"][kind] == sum(r["physics_steps"][kind] for r in runs)
+    assert payload["physics_steps"]["coarse"] > 0

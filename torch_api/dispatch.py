@@ -1,4 +1,5 @@
-"""Independent chunks of trials run one after another in-process, or as Ray tasks.
+"""Independent chunks of trials run one after another in-process, in local worker processes, or
+as Ray tasks.
 
 Trials of an experiment are independent: with ``trial_seeds`` (see
 :class:`~torch_api.iteration.ActivePolicyIteration`) trial t draws from streams of its own, so
@@ -6,20 +7,26 @@ the trials can be split into chunks, each chunk run as one batched computation w
 room, and the results concatenated along the trial axis. For environments with
 ``set_block_seeds`` the concatenation equals one batched run of all trials, bit for bit.
 
-``backend="ray"`` needs the ``ray`` extra (``pip install torch-api[ray]``).
+``backend="processes"`` runs the chunks in a pool of local worker processes: on a machine whose
+work alternates between native physics and single-threaded algebra, two or more chunks in flight
+keep every core busy. ``backend="ray"`` needs the ``ray`` extra (``pip install torch-api[ray]``).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any, TypeVar
+
+import torch
 
 from torch_api.iteration import derive_seed
 
-__all__ = ["BACKENDS", "run_chunks", "split_trials", "trial_seeds"]
+__all__ = ["BACKENDS", "run_chunks", "split_trials", "threads_per_worker", "trial_seeds"]
 
-BACKENDS = ("local", "ray")
+BACKENDS = ("local", "processes", "ray")
 
 C = TypeVar("C")
 R = TypeVar("R")
@@ -60,6 +67,15 @@ def trial_seeds(seed: int, trials: Sequence[int]) -> list[int]:
     return [derive_seed(seed, t, "trial") for t in trials]
 
 
+def threads_per_worker(workers: int) -> int:
+    """Threads each of ``workers`` local worker processes may use: the CPUs shared out, >= 1."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def _init_worker(threads: int) -> None:
+    torch.set_num_threads(threads)
+
+
 def _import_ray():
     try:
         import ray
@@ -75,6 +91,7 @@ def run_chunks(
     chunks: Sequence[C],
     *,
     backend: str = "local",
+    workers: int | None = None,
     address: str | None = None,
     num_cpus: int | None = None,
     runtime_env: dict[str, Any] | None = None,
@@ -85,8 +102,11 @@ def run_chunks(
         fn: a top-level (picklable) function of one chunk, e.g. a list of trial indices plus
             the run's settings, returning a picklable result (plain lists and dicts, tensors).
         chunks: the chunks, each independent of the others.
-        backend: ``"local"`` runs the chunks here one after another; ``"ray"`` runs each as a
-            Ray remote task (one CPU each) and gathers the results.
+        backend: ``"local"`` runs the chunks here one after another; ``"processes"`` in a pool
+            of ``workers`` local processes (started with ``spawn``; each limits torch to
+            :func:`threads_per_worker` threads), taking the chunks in the order given;
+            ``"ray"`` runs each as a Ray remote task (one CPU each) and gathers the results.
+        workers: processes only: the pool size (default: ``os.cpu_count()``).
         address: Ray only: the cluster to join (e.g. ``"ray://head:10001"`` or ``"auto"``);
             ``None`` starts a local Ray instance. Ignored if Ray is initialised already.
         num_cpus: Ray only: CPUs of a local instance started here (default: all).
@@ -107,6 +127,19 @@ def run_chunks(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "local":
         return [fn(chunk) for chunk in chunks]
+    if backend == "processes":
+        if not chunks:
+            return []
+        workers = workers or os.cpu_count() or 1
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        with ProcessPoolExecutor(
+            max_workers=min(workers, len(chunks)),
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(threads_per_worker(workers),),
+        ) as pool:
+            return list(pool.map(fn, chunks))
     ray = _import_ray()
     started_here = not ray.is_initialized()
     if started_here:
