@@ -29,9 +29,14 @@ def test_candidate_epsilons_follow_eq_59():
     assert candidate_epsilons(0.05) == [0.05, 0.2, 0.55, 0.9]
 
 
+@pytest.mark.parametrize("with_earlier", [True, False], ids=["earlier-sets", "first-iteration"])
 @pytest.mark.parametrize("mode", ["grouped", "single", "knn"])
-def test_j_values_match_algorithm_2_written_out(mode):
-    """Pooled designs (grouped, k-NN psi_hat) and per-part designs (single) both match."""
+def test_j_values_match_algorithm_2_written_out(mode, with_earlier):
+    """Pooled designs (grouped, k-NN psi_hat) and per-part designs (single) both match.
+
+    Without earlier sets (the first iteration) D̄_0 is still the pool of all K candidates'
+    episodes: grouped and k-NN psi_hat average over it, not over each candidate's own.
+    """
     _, psi, pi = _setup(mode=mode)
     env = ChainWalkEnv(batch_size=3, seed=0)
     cands = [pi.with_rule(epsilon=e) for e in (0.15, 0.6, 1.0)]
@@ -48,11 +53,11 @@ def test_j_values_match_algorithm_2_written_out(mode):
         ]
     )
     earlier = collect_episodes(env, pi, num_episodes=4, num_steps=n, rewarded=True)
-    batched = j_values(episodes, earlier, pi, psi, LAM)
+    batched = j_values(episodes, earlier if with_earlier else None, pi, psi, LAM)
     assert batched.shape == (z, k)
-    plain_earlier = earlier.exclude(("next", "reward"))
+    plain_earlier = [earlier.exclude(("next", "reward"))] if with_earlier else []
     for zi in range(z):
-        d0 = cat_episodes([episodes[zi, ki] for ki in range(k)] + [plain_earlier])
+        d0 = cat_episodes([episodes[zi, ki] for ki in range(k)] + plain_earlier)
         design = build_design(d0, pi, psi)
         x, w = design.x.numpy(), design.w.numpy()
         u = (x.T * w) @ x / x.shape[0]  # Ũ over D̄_0

@@ -86,24 +86,23 @@ def j_values(
         prev = earlier_episodes.select(*cand.keys(include_nested=True, leaves_only=True))
     # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
     # the collapse warning is for fits on rewarded data, not for this reward-free pool.
-    if prev is None or psi.row_local:
+    if psi.row_local:
         # Each row's psi_hat depends on the row alone: the earlier sets, which every Π_k and
         # every repeat shares, get their design once, not once per repeat.
         own = build_design(cand, policy, psi, min_ess_fraction=0.0)  # [..., K, M·N, B]
         own_x, own_w, n_own = own.x, own.w, own.num_samples.to(torch.float64)
         shared = None if prev is None else build_design(prev, policy, psi, min_ess_fraction=0.0)
     else:
-        # Grouped or k-NN psi_hat averages over the data set D̄_0 of each repeat: pool first.
-        own_lead = prev.batch_dims - 2  # earlier sets [*T, M', N]: broadcast over the repeats
-        prev = prev.reshape(*prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:])
-        pool = torch.cat(
-            [
-                cand.reshape(*lead, num_candidates * num_episodes, num_steps),
-                prev.expand(*lead, *prev.shape[-2:]).clone(),
-            ],
-            dim=-2,
-        )
-        design = build_design(pool, policy, psi, min_ess_fraction=0.0)
+        # Grouped or k-NN psi_hat averages over the data set D̄_0 of each repeat (all K
+        # candidates' episodes, plus the earlier sets when there are any): pool first.
+        pieces = [cand.reshape(*lead, num_candidates * num_episodes, num_steps)]
+        if prev is not None:
+            own_lead = prev.batch_dims - 2  # earlier sets [*T, M', N]: broadcast over repeats
+            prev = prev.reshape(
+                *prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:]
+            )
+            pieces.append(prev.expand(*lead, *prev.shape[-2:]).clone())
+        design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
         split = num_candidates * num_episodes * num_steps
 
         def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
@@ -113,11 +112,13 @@ def j_values(
 
         own_x, own_w = own_rows(design.x), own_rows(design.w)
         n_own = own_rows(design.mask).sum(-1).to(torch.float64)
-        shared = design._replace(
-            x=design.x.narrow(len(lead), split, design.x.shape[len(lead)] - split),
-            w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
-            num_samples=design.num_samples - n_own.sum(-1),
-        )
+        shared = None
+        if prev is not None:
+            shared = design._replace(
+                x=design.x.narrow(len(lead), split, design.x.shape[len(lead)] - split),
+                w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
+                num_samples=design.num_samples - n_own.sum(-1),
+            )
     # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
     # D̄_0 is their sum, with no pass of its own.
     a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
