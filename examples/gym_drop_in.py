@@ -28,6 +28,13 @@ test episodes of at most ``test_steps`` steps, with the policy's own ε-greedy r
 greedy version (ε = 0).
 
     python examples/gym_drop_in.py
+
+A Gymnasium env steps its rows one by one in Python, so this is where reward-free collection in
+worker processes (TorchRL's ``MultiSyncCollector``) can pay: each worker steps its share of the
+CartPoles. The policies' per-trial streams travel with the trials, but each worker's CartPoles
+are seeded on their own, so the numbers are an equally valid sample, not those of one process.
+
+    python examples/gym_drop_in.py --reward-free-workers 2
 """
 
 from __future__ import annotations
@@ -96,6 +103,9 @@ class Args:
     """longest test episode (steps)"""
     threads: int = 0
     """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+    reward_free_workers: int = 0
+    """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
+    MultiSyncCollector; each steps its share of the CartPoles)"""
 
 
 def parse_args(argv=None) -> Args:
@@ -196,6 +206,8 @@ def run_method(args: Args, mode: str) -> tuple[dict, dict]:
     evaluate = make_evaluator(args)
     api = ActivePolicyIteration(
         env=make_env,
+        reward_free_env=make_env if args.reward_free_workers else None,
+        reward_free_workers=args.reward_free_workers,
         basis=make_basis(args),
         schedule=schedule_of(args),
         num_steps=args.steps,

@@ -36,6 +36,7 @@ __all__ = [
     "REWARD_KEY",
     "cat_episodes",
     "collect_episodes",
+    "seed_env",
     "validate_episodes",
 ]
 
@@ -73,6 +74,15 @@ class EnvPerBatch:
         if batch not in self._built:
             self._built[batch] = self.env(batch)
         return self._built[batch]
+
+
+def seed_env(env: EnvBase, seed: int, block_seeds=None) -> None:
+    """Seed ``env``: one stream per block of rows (``set_block_seeds``) where the env has it
+    and ``block_seeds`` are given, else ``env.set_seed(seed)``."""
+    if block_seeds is not None and hasattr(env, "set_block_seeds"):
+        env.set_block_seeds(list(block_seeds))
+    else:
+        env.set_seed(seed)
 
 
 def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:

@@ -16,7 +16,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes
+from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes, seed_env
 from torch_api.design import build_design
 from torch_api.policies import LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
@@ -158,6 +158,10 @@ class ActivePolicyIteration:
             :meth:`load` on an instance built with the same arguments.
         device: where psi_hat, J and the solves run (e.g. ``"cuda"``); environments, rollouts
             and the stored episodes stay on the environments' device. Default: CPU.
+        reward_free_workers: if > 0, the reward-free episodes are collected in this many worker
+            processes by TorchRL's ``MultiSyncCollector``
+            (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
+            must then be a picklable callable ``batch_size -> env``.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -199,6 +203,7 @@ class ActivePolicyIteration:
         keep_reward_free: bool = True,
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
+        reward_free_workers: int = 0,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -285,6 +290,7 @@ class ActivePolicyIteration:
             lam=self.lam,
             generator=self.generator,
             device=self.device,
+            num_workers=reward_free_workers,
         )
         self.policy = self._policy(self.theta, 1)
 
@@ -341,11 +347,10 @@ class ActivePolicyIteration:
             ]
         return policy, seed
 
-    def _seed_env(self, env: EnvBase, iteration: int, stream: str) -> None:
-        if self.trial_seeds is not None and hasattr(env, "set_block_seeds"):
-            env.set_block_seeds(self.block_seeds(iteration, stream))
-        else:
-            env.set_seed(derive_seed(self.seed, iteration, stream))
+    def _env_seeds(self, iteration: int, stream: str) -> tuple[int, list[int] | None]:
+        """The seed and, with ``trial_seeds``, the per-trial seeds of an env stream of l."""
+        blocks = self.block_seeds(iteration, stream) if self.trial_seeds is not None else None
+        return derive_seed(self.seed, iteration, stream), blocks
 
     def _seed_iteration(self, iteration: int, num_episodes: int) -> None:
         """Re-seed the policies' streams and the environments of iteration l."""
@@ -355,10 +360,10 @@ class ActivePolicyIteration:
             self.policy.block_generators = [
                 torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "policy")
             ]
-        self._seed_env(self._env_for(trials * num_episodes), iteration, "rewarded_env")
+        seed_env(self._env_for(trials * num_episodes), *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
-            self._seed_env(self.selector.env_for(batch), iteration, "reward_free_env")
+            self.selector.seed_env(batch, *self._env_seeds(iteration, "reward_free_env"))
 
     def _buy(self) -> None:
         """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes."""

@@ -10,8 +10,9 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.data import EnvPerBatch, collect_episodes
+from torch_api.data import EnvPerBatch, collect_episodes, seed_env
 from torch_api.design import build_design
+from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
@@ -172,6 +173,17 @@ class PolicyStack(ActionProbsPolicy):
         probs = [p.action_probs(grid[:, k]) for k, p in enumerate(self.policies)]
         return torch.stack(probs, 1).reshape(rows, *probs[0].shape[2:])
 
+    def trial_slice(self, trials: slice) -> PolicyStack:
+        """The stack of some trials only (each policy sliced; the per-trial streams too)."""
+        return self._copy_streams(
+            PolicyStack(
+                [p.trial_slice(trials) for p in self.policies],
+                episodes_per_policy=self.episodes_per_policy,
+                **self._io_kwargs(),
+            ),
+            trials,
+        )
+
 
 @dataclass
 class Selection:
@@ -216,6 +228,11 @@ class SamplingPolicySelector:
         max_design_bytes: J is computed for as many trials at a time as keep the candidates'
             psi_hat design under about this many bytes (memory, not speed, is the limit at
             hundreds of trials).
+        num_workers: if > 0, the reward-free episodes are collected in this many worker
+            processes by TorchRL's ``MultiSyncCollector``
+            (:func:`~torch_api.multiprocess.collect_episodes_in_workers`; for slow
+            environments); ``env`` must then be a picklable callable ``batch_size -> env``,
+            seeded through :meth:`seed_env`.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -244,6 +261,7 @@ class SamplingPolicySelector:
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
         max_design_bytes: int = 2**29,
+        num_workers: int = 0,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -263,10 +281,24 @@ class SamplingPolicySelector:
         self.generator = generator
         self.device = None if device is None else torch.device(device)
         self.max_design_bytes = int(max_design_bytes)
+        if num_workers < 0:
+            raise ValueError(f"num_workers must be >= 0, got {num_workers}")
+        if num_workers and not self._envs.is_factory:
+            raise ValueError("num_workers needs env as a picklable callable batch_size -> env")
+        self.num_workers = int(num_workers)
+        self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
         return self._envs(batch)
+
+    def seed_env(self, batch: int, seed: int, block_seeds: Sequence[int] | None = None) -> None:
+        """Seed the reward-free environment of ``batch`` rows (with ``num_workers``: the
+        workers' environments of the next :meth:`collect`), as :func:`torch_api.data.seed_env`."""
+        if self.num_workers:
+            self._worker_env_seeds = (seed, None if block_seeds is None else list(block_seeds))
+        else:
+            seed_env(self.env_for(batch), seed, block_seeds)
 
     def collect(self, candidates: Sequence, iteration: int = 0) -> TensorDictBase:
         """Reward-free episodes of every candidate and repeat, ``[*T, Z, K, M, N]``.
@@ -277,9 +309,28 @@ class SamplingPolicySelector:
         trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
         trials = math.prod(trial_dims)
         z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
-        env = self.env_for(trials * z * k * m)
         generator = self.generator or candidates[0].generator
         ids = torch.arange(k).reshape(k, 1, 1)
+        if self.num_workers:
+            stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
+            stack.block_generators = getattr(candidates[0], "block_generators", None)
+            seed, block_seeds = self._worker_env_seeds
+            episodes = collect_episodes_in_workers(
+                self._envs.env,
+                stack,
+                num_episodes=trials * z * k * m,
+                num_steps=n,
+                rewarded=False,
+                num_workers=self.num_workers,
+                blocks=trials,
+                env_seed=seed,
+                env_block_seeds=block_seeds,
+                iteration=iteration,
+            )
+            episodes = episodes.reshape(*trial_dims, z, k, m, n)
+            episodes["policy_id"] = ids.expand(episodes.shape).clone()
+            return episodes
+        env = self.env_for(trials * z * k * m)
         if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
             stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
             stack.block_generators = getattr(candidates[0], "block_generators", None)

@@ -1,0 +1,87 @@
+"""Reward-free collection in worker processes (TorchRL's MultiSyncCollector)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from envs.batting import BASIS_TAU, BattingEnv, basis_centers
+from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
+from torch_api.basis import GaussianActionBasis
+from torch_api.iteration import ActivePolicyIteration
+from torch_api.multiprocess import collect_episodes_in_workers
+from torch_api.policies import LinearQPolicy
+from torch_api.psi import PsiHat
+from torch_api.selector import SamplingPolicySelector
+
+
+def batting_env(rows: int) -> BattingEnv:  # top level: the workers unpickle it by name
+    return BattingEnv(batch_size=rows, nthread=1)
+
+
+def chain_env(rows: int) -> ChainWalkEnv:
+    return ChainWalkEnv(batch_size=rows)
+
+
+def _batting_run(workers: int) -> tuple[list, torch.Tensor]:
+    api = ActivePolicyIteration(
+        env=batting_env,
+        reward_free_env=batting_env,
+        basis=GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2),
+        schedule=(2, 2),
+        num_steps=10,
+        gamma=1.0,
+        psi_mode="single",
+        num_repeats=2,
+        num_trials=3,
+        seed=11,
+        reward_free_workers=workers,
+    )
+    history = api.run()
+    return [(r.chosen, r.j_all) for r in history], api.theta
+
+
+def test_workers_give_the_numbers_of_one_process():
+    """Per-trial streams travel with the trials: J, choices and θ are bit-identical."""
+    in_workers, theta_workers = _batting_run(workers=2)
+    in_process, theta_process = _batting_run(workers=0)
+    assert in_workers == in_process
+    assert torch.equal(theta_workers, theta_process)
+
+
+def test_workers_without_trial_streams_are_reproducible():
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+
+    def collect():
+        policy = LinearQPolicy(
+            basis=basis,
+            theta=torch.ones(12),
+            epsilon=0.5,
+            generator=torch.Generator().manual_seed(4),
+        )
+        return collect_episodes_in_workers(
+            chain_env, policy, num_episodes=6, num_steps=5, rewarded=True, num_workers=2
+        )
+
+    first, second = collect(), collect()
+    assert first.shape == (6, 5)
+    assert torch.equal(first["observation"], second["observation"])
+    assert torch.equal(first["action"], second["action"])
+    assert "reward" in first["next"].keys()
+
+
+def test_workers_need_a_factory_and_a_positive_count():
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    policy = LinearQPolicy(basis=basis, theta=torch.ones(12), epsilon=0.5)
+    with pytest.raises(ValueError, match="num_workers"):
+        collect_episodes_in_workers(
+            chain_env, policy, num_episodes=2, num_steps=3, rewarded=False, num_workers=0
+        )
+    with pytest.raises(ValueError, match="picklable callable"):
+        SamplingPolicySelector(
+            env=ChainWalkEnv(batch_size=2),
+            psi=PsiHat(basis=basis, gamma=0.9),
+            num_episodes=2,
+            num_steps=3,
+            num_workers=2,
+        )

@@ -1,0 +1,172 @@
+"""Episode collection in worker processes through TorchRL's ``MultiSyncCollector``.
+
+Where an environment is slow and does not batch its rows natively (a Python simulator, a
+Gymnasium env stepped row by row), the rows of one collection can be spread over W worker
+processes, each stepping an environment of its own share of the rows. The rows are split in
+whole blocks (trials): worker w gets trials ``a_w … b_w - 1``, the policy restricted to them
+(``trial_slice``) and, where the policy and the environment keep one random stream per trial
+(``block_generators``, ``set_block_seeds``), exactly those trials' streams. Then the episodes
+equal those of one in-process ``env.rollout`` bit for bit, and the parent's streams are moved on
+by the draws the workers made, as if it had sampled them itself.
+
+Without per-trial streams each worker gets streams seeded from the parent's: reproducible, but
+not the numbers of one process.
+
+Worth it only when collection takes much longer than starting W processes (seconds: each
+imports torch, TorchRL and the environment); an environment that already steps its rows in
+native threads (the batting arm's ``mujoco.batch``) gains nothing
+(``benchmarks/bench_collection.py``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import MultiSyncCollector
+from torchrl.data import Categorical, Composite, OneHot, Unbounded
+from torchrl.envs import EnvBase
+
+from torch_api.data import _episodes_from_rollout, seed_env, validate_episodes
+
+__all__ = ["collect_episodes_in_workers"]
+
+_SEED_RANGE = 2**62
+
+
+class _WorkerPolicy:
+    """Picklable factory of one worker's policy: its trials' slice and random streams."""
+
+    def __init__(self, policy, seed: int) -> None:
+        self.policy = policy  # pickled with its generators' states
+        self.seed = seed
+
+    def __call__(self):
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
+        torch.set_num_threads(1)
+        policy = self.policy
+        if policy.block_generators is None:
+            policy.generator = torch.Generator().manual_seed(self.seed)
+        # Declaring the outputs spares the collector a probing call of the policy at start-up,
+        # which would draw from the streams and shift every action by one step.
+        action = (
+            OneHot(n=policy.num_actions) if policy.one_hot else Categorical(n=policy.num_actions)
+        )
+        policy.spec = Composite(
+            {
+                policy.action_key: action,
+                policy.probs_key: Unbounded(shape=(policy.num_actions,), dtype=torch.float64),
+            }
+        )
+        return policy
+
+
+class _WorkerEnv:
+    """Picklable factory of one worker's environment of ``rows`` rows, seeded."""
+
+    def __init__(self, make_env, rows: int, seed: int, block_seeds: Sequence[int] | None):
+        self.make_env, self.rows, self.seed, self.block_seeds = make_env, rows, seed, block_seeds
+
+    def __call__(self) -> EnvBase:
+        env = self.make_env(self.rows)
+        seed_env(env, self.seed, self.block_seeds)
+        return env
+
+
+def _split(blocks: int, parts: int) -> list[range]:
+    size, extra = divmod(blocks, parts)
+    bounds = [0]
+    for p in range(parts):
+        bounds.append(bounds[-1] + size + (p < extra))
+    return [range(a, b) for a, b in zip(bounds, bounds[1:], strict=False)]
+
+
+def collect_episodes_in_workers(
+    make_env: Callable[[int], EnvBase],
+    policy,
+    *,
+    num_episodes: int,
+    num_steps: int,
+    rewarded: bool,
+    num_workers: int,
+    blocks: int | None = None,
+    env_seed: int = 0,
+    env_block_seeds: Sequence[int] | None = None,
+    iteration: int = 0,
+) -> TensorDict:
+    """:func:`~torch_api.data.collect_episodes` with the rows spread over worker processes.
+
+    Args:
+        make_env: a picklable callable ``rows -> env`` (a top-level function or class, or a
+            ``functools.partial`` of one), called in each worker with its share of the rows.
+        policy: as for ``collect_episodes``; it must have ``trial_slice`` when ``blocks > 1``.
+        num_episodes: M per trial (rows in all when the policy has no trial dims).
+        num_steps: N.
+        rewarded: keep the rewards.
+        num_workers: W ≥ 1 worker processes (at most one per block).
+        blocks: the rows come in this many equal consecutive blocks that a worker must not
+            split, e.g. the trials of a ``PolicyStack`` over ``T·Z·K·M`` rows (default: the
+            policy's trials, or one block per row).
+        env_seed: seed of the workers' environments (worker w: ``env_seed + w``) where
+            ``env_block_seeds`` is not given or the env lacks ``set_block_seeds``.
+        env_block_seeds: one seed per block for envs with ``set_block_seeds`` (worker w gets
+            its blocks' seeds).
+        iteration: tag stored with every step.
+
+    Returns:
+        TensorDict ``[*T, M, N]`` as ``collect_episodes`` returns.
+    """
+    if num_workers < 1:
+        raise ValueError(f"num_workers must be >= 1, got {num_workers}")
+    trial_dims = tuple(getattr(policy, "param_dims", ()))
+    rows = math.prod(trial_dims) * num_episodes
+    if blocks is None:
+        blocks = math.prod(trial_dims) if trial_dims else rows
+    if blocks < 1 or rows % blocks:
+        raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
+    if env_block_seeds is not None and len(env_block_seeds) != blocks:
+        raise ValueError(f"env_block_seeds must hold {blocks} seeds, got {len(env_block_seeds)}")
+    per_block = rows // blocks
+    parts = _split(blocks, min(num_workers, blocks))
+    streams = policy.block_generators
+    env_factories, policy_factories = [], []
+    for w, part in enumerate(parts):
+        piece = policy
+        if blocks > 1 and (trial_dims or streams is not None):
+            piece = policy.trial_slice(slice(part.start, part.stop))
+        # one stream per trial: the worker continues its trials' streams; else a fresh seed
+        seed = (
+            0
+            if streams is not None
+            else int(torch.randint(_SEED_RANGE, (), generator=policy.generator))
+        )
+        policy_factories.append(_WorkerPolicy(piece, seed))
+        block_seeds = None if env_block_seeds is None else env_block_seeds[part.start : part.stop]
+        env_factories.append(_WorkerEnv(make_env, len(part) * per_block, env_seed + w, block_seeds))
+    collector = MultiSyncCollector(
+        env_factories,
+        policy_factory=policy_factories,
+        frames_per_batch=[len(part) * per_block * num_steps for part in parts],
+        total_frames=rows * num_steps,
+        reset_at_each_iter=True,
+        cat_results=0,
+        trust_policy=True,
+    )
+    try:
+        batch = next(iter(collector))
+    finally:
+        collector.shutdown()
+    batch = batch.reshape(rows, num_steps)
+    if streams is not None:  # the workers drew from copies: move the parent's streams on
+        for generator in streams:  # ActionProbsPolicy.sample: one draw per row and step
+            for _ in range(num_steps):
+                torch.rand(rows // len(streams), generator=generator, dtype=torch.float64)
+    episodes = _episodes_from_rollout(batch, rewarded=rewarded)
+    episodes = episodes.reshape(*trial_dims, num_episodes, num_steps)
+    episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
+    episodes["policy_id"] = torch.zeros(episodes.shape, dtype=torch.long)
+    validate_episodes(episodes, rewarded=rewarded)
+    return episodes
