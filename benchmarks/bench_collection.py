@@ -3,8 +3,13 @@
 The library collects M episodes of N steps by ``env.rollout(N, policy)`` on an env whose batch
 holds the M rows (``torch_api.data.collect_episodes``). The alternative is TorchRL's collector,
 ``Collector(env, policy, frames_per_batch=M·N, total_frames=..., reset_at_each_iter=True)``
-over the same batched env, which yields the same ``[M, N]`` batches. Both are timed side by side
-on the chain walk and the batting arm, with the library's ε-greedy linear-Q policy.
+over the same batched env, which yields the same ``[M, N]`` batches. A third way spreads the rows
+over 2 worker processes with TorchRL's ``MultiSyncCollector``
+(``torch_api.multiprocess.collect_episodes_in_workers``, start-up of the workers included, as it
+is paid on every call). All are timed side by side on the chain walk and the batting arm, with
+the library's ε-greedy linear-Q policy. A last row shows where the workers pay: a slow, CPU-bound
+environment (the chain walk plus ``--slow-us`` microseconds of Python work per row and step,
+standing in for a simulator that steps its rows one by one), env.rollout against 2 workers.
 
     python benchmarks/bench_collection.py
 """
@@ -14,6 +19,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -24,6 +31,7 @@ from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.data import collect_episodes
+from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import LinearQPolicy
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -38,6 +46,38 @@ def chain_walk_policy() -> LinearQPolicy:
 def batting_policy() -> LinearQPolicy:
     basis = GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2)
     return LinearQPolicy(basis=basis, theta=torch.ones(110), epsilon=0.3)
+
+
+def chain_walk_env(rows: int) -> ChainWalkEnv:  # top level: worker processes unpickle it
+    return ChainWalkEnv(batch_size=rows, seed=0)
+
+
+def batting_env(rows: int) -> BattingEnv:
+    return BattingEnv(batch_size=rows, seed=0)
+
+
+class SlowChainWalkEnv(ChainWalkEnv):
+    """The chain walk plus ``cost_us`` microseconds of busy Python work per row and step."""
+
+    def __init__(self, *args, cost_us: float, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.cost_us = cost_us
+
+    def _step(self, tensordict):
+        until = time.perf_counter() + self.cost_us * 1e-6 * self.batch_size.numel()
+        while time.perf_counter() < until:
+            pass
+        return super()._step(tensordict)
+
+
+def slow_chain_walk_env(rows: int, cost_us: float) -> SlowChainWalkEnv:
+    return SlowChainWalkEnv(batch_size=rows, seed=0, cost_us=cost_us)
+
+
+def via_workers(make_env, policy, episodes: int):
+    return collect_episodes_in_workers(
+        make_env, policy, num_episodes=episodes, num_steps=STEPS, rewarded=True, num_workers=2
+    )
 
 
 def via_rollout(env, policy, episodes: int):
@@ -62,7 +102,14 @@ def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[16, 256, 2048])
     parser.add_argument("--budget", type=float, default=1.0, help="seconds per method and size")
+    parser.add_argument("--repeats", type=int, default=3, help="least timed rounds per size")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--slow-us", type=float, default=500.0, help="Python work per row and step, slow env"
+    )
+    parser.add_argument(
+        "--slow-size", type=int, default=2048, help="episodes M of the slow env (0: skip it)"
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -70,8 +117,8 @@ def main() -> dict:
     print(f"# bench_collection: torch {info['torch']}, {torch.get_num_threads()} thread(s)")
     rows = []
     for task, make_env, make_policy in (
-        ("chain walk", lambda e: ChainWalkEnv(batch_size=e, seed=0), chain_walk_policy),
-        ("batting", lambda e: BattingEnv(batch_size=e, seed=0), batting_policy),
+        ("chain walk", chain_walk_env, chain_walk_policy),
+        ("batting", batting_env, batting_policy),
     ):
         for episodes in args.sizes:
             env, policy = make_env(episodes), make_policy()
@@ -79,11 +126,14 @@ def main() -> dict:
                 {
                     "rollout": lambda env=env, p=policy, m=episodes: via_rollout(env, p, m),
                     "collector": lambda env=env, p=policy, m=episodes: via_collector(env, p, m),
+                    "workers": lambda f=make_env, p=policy, m=episodes: via_workers(f, p, m),
                 },
                 budget_s=args.budget,
+                min_repeats=args.repeats,
             )
             assert tuple(times["collector"].result.shape) == (episodes, STEPS)
             rollout, collector = times["rollout"].median_ms, times["collector"].median_ms
+            workers = times["workers"].median_ms
             rows.append(
                 {
                     "task": task,
@@ -91,18 +141,53 @@ def main() -> dict:
                     "rollout_ms": rollout,
                     "collector_ms": collector,
                     "collector_over_rollout": collector / rollout,
+                    "workers_ms": workers,
+                    "workers_over_rollout": workers / rollout,
                     "rollout_transitions_per_s": episodes * STEPS / rollout * 1e3,
                 }
             )
             print(f"  {task}, M = {episodes}: done", flush=True)
+    if args.slow_size > 0:
+        episodes, policy = args.slow_size, chain_walk_policy()
+        make_env = partial(slow_chain_walk_env, cost_us=args.slow_us)
+        env = make_env(episodes)
+        times = median_times(  # one timed round: a call takes seconds
+            {
+                "rollout": lambda: via_rollout(env, policy, episodes),
+                "workers": lambda: via_workers(make_env, policy, episodes),
+            },
+            budget_s=args.budget,
+            min_repeats=1,
+        )
+        rollout, workers = times["rollout"].median_ms, times["workers"].median_ms
+        rows.append(
+            {
+                "task": f"slow chain walk ({args.slow_us:g} µs per row-step)",
+                "episodes": episodes,
+                "rollout_ms": rollout,
+                "collector_ms": None,
+                "collector_over_rollout": None,
+                "workers_ms": workers,
+                "workers_over_rollout": workers / rollout,
+                "rollout_transitions_per_s": episodes * STEPS / rollout * 1e3,
+            }
+        )
+        print(f"  slow chain walk, M = {episodes}: done", flush=True)
     print(
         "\n| task | episodes M (N = 10) | env.rollout (ms) | Collector (ms) | Collector / rollout "
-        "| rollout transitions/s |\n|---|---:|---:|---:|---:|---:|"
+        "| 2 workers (ms) | workers / rollout | rollout transitions/s |"
+        "\n|---|---:|---:|---:|---:|---:|---:|---:|"
     )
     for r in rows:
+        collector = (
+            "— | —"
+            if r["collector_ms"] is None
+            else f"{r['collector_ms']:.1f} | {r['collector_over_rollout']:.2f}×"
+        )
         print(
-            f"| {r['task']} | {r['episodes']:,} | {r['rollout_ms']:.1f} | {r['collector_ms']:.1f} "
-            f"| {r['collector_over_rollout']:.2f}× | {r['rollout_transitions_per_s']:,.0f} |"
+            f"| {r['task']} | {r['episodes']:,} | {r['rollout_ms']:.1f} | {collector} "
+            f"| {r['workers_ms']:.0f} "
+            f"| {r['workers_over_rollout']:.2f}× | {r['rollout_transitions_per_s']:,.0f} |"
         )
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -18,14 +18,17 @@ Defaults (about a minute on 2 CPU cores): 8 trials, the decreasing schedule, all
 
     python examples/train_batting.py
 
-The paper's full experiment (500 trials, both schedules) took 2302 s (38 min) on 2 cores, most
-of it MuJoCo rollouts (per trial and schedule: 980 reward-free, 49 rewarded and 140 test
-episodes for AL); J is computed over chunks of trials, so memory stays bounded:
+The paper's full experiment (500 trials, both schedules): most of its time is MuJoCo rollouts
+(per trial and schedule: 980 reward-free, 49 rewarded and 140 test episodes for AL). Chunks of
+about 16 trials in one worker process per core (``--backend processes``) overlap one process's
+physics with another's algebra and keep each batch in cache; it took 1085 s (18.1 min) on 2 cores
+(``benchmarks/bench_figure10.py`` measures it against its physics floor):
 
-    python examples/train_batting.py --trials 500 --schedule both
+    python examples/train_batting.py --trials 500 --schedule both --backend processes --chunks 32
 
-Beyond one machine: ``--chunks C`` splits the trials of every run into C chunks, each one
-batched run, and ``--backend ray`` runs the chunks as Ray tasks (``pip install -e ".[ray]"``; a
+Chunks: ``--chunks C`` splits the trials of every run into C chunks, each one batched run;
+``--backend processes`` runs them in a pool of ``--workers`` local processes, ``--backend ray``
+as Ray tasks (``pip install -e ".[ray]"``; a
 local Ray instance, or the cluster at ``--ray-address``); the chunks' results are concatenated
 along the trial axis into the same JSON, CSV and figure. Trial t always has the seed
 ``derive_seed(seed, t, "trial")``, whatever the chunking, and ``BattingEnv.set_block_seeds``

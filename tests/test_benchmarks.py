@@ -19,7 +19,11 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
             ["bench_figure10.py", "--trials", "2", "--iterations", "1", "--audit", "0.2"],
             "| processes (2 workers) |",
         ),
-        (["bench_collection.py", "--sizes", "4", "--budget", "0.01"], "| Collector / rollout"),
+        (
+            ["bench_collection.py", "--sizes", "4", "--budget", "0.01", "--repeats", "1"]
+            + ["--slow-size", "4"],
+            "| slow chain walk (500 µs per row-step) | 4 |",
+        ),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):
