@@ -638,7 +638,8 @@ class ChainWalkEnv(EnvBase):
         success_prob: probability that the intended move succeeds, in [0, 1].
         max_steps: if given, episodes are truncated after this many steps.
         n_states: number of states S (10 in the paper).
-        device: device of the env's tensors (CPU by default).
+        device: device of the env's tensors (CPU by default). The random numbers are drawn on
+            the CPU whatever the device, so a seed gives the same walks on CPU and GPU.
         seed: seed of the env's generator; ``None`` draws a fresh one (not from global state).
 
     Example:
@@ -724,7 +725,7 @@ class ChainWalkEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             seed = int(torch.Generator().seed())
-        rng = torch.Generator(device=self.device)
+        rng = torch.Generator()  # on the CPU whatever the env's device: see `_draw`
         rng.manual_seed(int(seed))
         self.rng = rng
         self.block_rngs: list[torch.Generator] | None = None
@@ -741,20 +742,22 @@ class ChainWalkEnv(EnvBase):
             raise ValueError(
                 f"seeds must split the {rows} rows into equal blocks, got {len(seeds)} seeds"
             )
-        self.block_rngs = [
-            torch.Generator(device=self.device).manual_seed(int(seed)) for seed in seeds
-        ]
+        self.block_rngs = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
 
     def _draw(self, sampler, shape: torch.Size, *args) -> torch.Tensor:
-        """``sampler(*args, shape, generator=...)`` from one stream, or one stream per block."""
+        """``sampler(*args, shape, generator=...)`` from one stream, or one stream per block.
+
+        The numbers are drawn on the CPU and moved to the env's device, so a seed gives the
+        same walks on every device (a CUDA generator would draw other numbers).
+        """
         if self.block_rngs is None:
-            return sampler(*args, shape, generator=self.rng, device=self.device)
-        rows = shape[0] // len(self.block_rngs)
-        parts = [
-            sampler(*args, (rows, *shape[1:]), generator=rng, device=self.device)
-            for rng in self.block_rngs
-        ]
-        return torch.cat(parts)
+            drawn = sampler(*args, shape, generator=self.rng)
+        else:
+            rows = shape[0] // len(self.block_rngs)
+            drawn = torch.cat(
+                [sampler(*args, (rows, *shape[1:]), generator=rng) for rng in self.block_rngs]
+            )
+        return drawn.to(self.device)
 
     # -- dynamics -----------------------------------------------------------------------------
 

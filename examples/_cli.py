@@ -34,3 +34,18 @@ def dataclass_parser(cls, description: str, epilog: str | None = None) -> argpar
             kind = type(field.default)
             parser.add_argument(flag, type=kind, default=field.default, help=docs.get(field.name))
     return parser
+
+
+def device_error(name: str) -> str | None:
+    """Why ``--device name`` cannot be used here (an unknown device, or no GPU), or None."""
+    import torch
+
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError) as error:
+        return f"--device {name!r} is not a device torch knows: {error}"
+    if device.type == "cuda" and not torch.cuda.is_available():
+        return f"--device {name!r}: torch sees no CUDA GPU here (use --device cpu)"
+    if device.type not in ("cpu", "cuda"):
+        return f"--device must be cpu or cuda (e.g. cuda:1), got {name!r}"
+    return None

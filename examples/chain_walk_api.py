@@ -38,6 +38,10 @@ per-repeat J are left out), ``chain_walk_api.csv`` (one row per schedule × meth
 trial) and ``fig8_performance.png`` (mean ± standard error over trials).
 
     python examples/chain_walk_api.py --trials 1000
+
+Device: ``--device cuda`` runs the whole experiment on the GPU: the batched chain walks, the
+rollouts, psi_hat, J and the solves. The walks' random numbers are drawn on the CPU and moved,
+so a seed gives the same episodes on either device.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from _cli import dataclass_parser  # noqa: E402
+from _cli import dataclass_parser, device_error  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
     CENTERS,
@@ -119,6 +123,8 @@ class Args:
     """Ray cluster to join (e.g. 'auto'); '' starts a local Ray instance"""
     ray_cpus: int = 0
     """CPUs of a local Ray instance (0: all)"""
+    device: str = "cpu"
+    """where the chain walks, the rollouts and the algebra run (cpu or cuda): all of it"""
 
 
 def parse_args(argv=None) -> Args:
@@ -134,6 +140,8 @@ def parse_args(argv=None) -> Args:
         raise ValueError(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
     if not 1 <= args.chunks <= args.trials:
         raise ValueError(f"--chunks must lie in 1 … --trials = {args.trials}, got {args.chunks}")
+    if (why := device_error(args.device)) is not None:
+        raise ValueError(why)
     return args
 
 
@@ -142,9 +150,11 @@ def derived_seed(*parts: int) -> int:
     return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] >> 1)
 
 
-def env_factory(run_seed: int, role: int):
+def env_factory(run_seed: int, role: int, device: str = "cpu"):
     """``batch_size -> ChainWalkEnv`` with a seed of its own per role and batch size."""
-    return lambda batch: ChainWalkEnv(batch_size=batch, seed=derived_seed(run_seed, role, batch))
+    return lambda batch: ChainWalkEnv(
+        batch_size=batch, seed=derived_seed(run_seed, role, batch), device=device
+    )
 
 
 def make_evaluator(args: Args, trials: int):
@@ -156,14 +166,15 @@ def make_evaluator(args: Args, trials: int):
     only: not on the learner's streams, nor on the other trials of the batch.
     """
     m, n = args.test_episodes, args.test_steps
-    env = ChainWalkEnv(batch_size=trials * m, seed=0)  # re-seeded per trial before every use
+    # re-seeded per trial before every use
+    env = ChainWalkEnv(batch_size=trials * m, seed=0, device=args.device)
     model = chain_walk_model()
     P, R = model.transitions, model.expected_reward
     best, _ = optimal_policy(P, R, GAMMA)
     best_probs = torch.nn.functional.one_hot(best, N_ACTIONS).to(torch.float64)
     optimum = expected_discounted_return(P, R, best_probs, model.initial, GAMMA, n)
     states = torch.arange(1, model.n_states + 1, dtype=torch.float64).unsqueeze(-1)
-    discounts = GAMMA ** torch.arange(n, dtype=torch.float64)
+    discounts = GAMMA ** torch.arange(n, dtype=torch.float64, device=env.device)
 
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
         env.set_block_seeds(
@@ -202,8 +213,8 @@ def run_chunk(chunk: Chunk) -> dict:
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
     evaluate, optimum = make_evaluator(args, len(chunk.trials))
     api = ActivePolicyIteration(
-        env=env_factory(run_seed, _ROLE_REWARDED),
-        reward_free_env=env_factory(run_seed, _ROLE_REWARD_FREE),
+        env=env_factory(run_seed, _ROLE_REWARDED, args.device),
+        reward_free_env=env_factory(run_seed, _ROLE_REWARD_FREE, args.device),
         basis=basis,
         schedule=chunk.schedule,
         num_steps=args.steps,
@@ -217,6 +228,7 @@ def run_chunk(chunk: Chunk) -> dict:
         seed=run_seed,
         trial_seeds=trial_seeds(run_seed, chunk.trials),  # trial t's seed: (run seed, t) only
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
+        device=args.device,
     )
     first = LinearQPolicy(basis=basis, theta=api.policy.theta, epsilon=api.policy.epsilon)
     first.block_generators = [

@@ -12,6 +12,9 @@ and ten sampling-policy candidates (ε = k/10), every trial
 All trials run as one batch: the environment holds T·Z·K·M chains at once.
 
     python examples/chain_walk_one_step.py --trials 100
+
+``--device cuda`` runs all of it on the GPU (the walks' random numbers are drawn on the CPU and
+moved, so a seed gives the same episodes on either device).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from _cli import dataclass_parser  # noqa: E402
+from _cli import dataclass_parser, device_error  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
@@ -75,11 +78,16 @@ class Args:
     """seed of the environment and the policies"""
     out_dir: str = "results/chain_walk_one_step"
     """where the JSON and the figures go"""
+    device: str = "cpu"
+    """where the chain walks, the rollouts and the algebra run (cpu or cuda)"""
 
 
 def parse_args(argv=None) -> Args:
     parser = dataclass_parser(Args, __doc__.split("\n")[0])
-    return Args(**vars(parser.parse_args(argv)))
+    args = Args(**vars(parser.parse_args(argv)))
+    if (why := device_error(args.device)) is not None:
+        parser.error(why)
+    return args
 
 
 def state_index(obs: torch.Tensor) -> torch.Tensor:
@@ -98,17 +106,21 @@ def row_tables(tables: torch.Tensor, lead: tuple[int, ...]) -> torch.Tensor:
 
 
 def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> dict:
-    """All trials for one evaluation policy; returns J' and Ḡ ``[T, K]``."""
+    """All trials for one evaluation policy; returns J' and Ḡ ``[T, K]`` (on the CPU).
+
+    Everything else lives on ``args.device``: the walks, the policies' tables and the algebra.
+    """
     t, z, k, m, n = args.trials, args.repeats, args.candidates, args.episodes, args.steps
+    device = torch.device(args.device)
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
     psi = PsiHat(basis=basis, gamma=GAMMA, mode="grouped")
-    eval_table = deterministic_policy_probs(base, args.eval_epsilon)
+    eval_table = deterministic_policy_probs(base, args.eval_epsilon).to(device)
     evaluation = TabularPolicy(table=eval_table, state_index=state_index)
     eps = torch.arange(1, k + 1, dtype=torch.float64) / k
-    cand_tables = deterministic_policy_probs(base, eps)  # [K, S, A]
+    cand_tables = deterministic_policy_probs(base, eps).to(device)  # [K, S, A]
 
     # Reward-free data: [T, Z, K, M] chains, candidate k on its rows (Algorithm 2, steps 2-5).
-    env = ChainWalkEnv(batch_size=t * z * k * m, seed=seed)
+    env = ChainWalkEnv(batch_size=t * z * k * m, seed=seed, device=device)
     sampler = TabularPolicy(
         table=row_tables(cand_tables, (t, z, k, m)), state_index=state_index, generator=generator
     )
@@ -118,7 +130,7 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     j_prime = j_all.mean(1)
 
     # Rewarded data: one fresh set of M episodes per trial and candidate; θ_k and its Ḡ_k.
-    env = ChainWalkEnv(batch_size=t * k * m, seed=seed + 1)
+    env = ChainWalkEnv(batch_size=t * k * m, seed=seed + 1, device=device)
     sampler = TabularPolicy(
         table=row_tables(cand_tables, (t, k, m)), state_index=state_index, generator=generator
     )
@@ -127,12 +139,12 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     theta = weighted_ridge(design.x, design.w, design.reward, args.lam)  # [T, K, B]
 
     model = env.model()
-    states = torch.arange(1, model.n_states + 1, dtype=torch.float64).unsqueeze(-1)
+    states = torch.arange(1, model.n_states + 1, dtype=torch.float64, device=device)[:, None]
     phi_all = basis.phi_all(states)  # [S, A, B]
     psi_true = exact_psi(model.transitions, phi_all, eval_table, GAMMA)
     occupancy = state_action_occupancy(model.transitions, eval_table, model.initial, n)
     g_true = true_generalisation_error(theta, psi_true, model.expected_reward, occupancy)
-    return {"j_prime": j_prime, "g_true": g_true}
+    return {"j_prime": j_prime.cpu(), "g_true": g_true.cpu()}
 
 
 def summarise(j_prime: torch.Tensor, g_true: torch.Tensor) -> dict:

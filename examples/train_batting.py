@@ -74,7 +74,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
-from _cli import dataclass_parser  # noqa: E402
+from _cli import dataclass_parser, device_error  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
@@ -165,6 +165,8 @@ def parse_args(argv=None) -> Args:
         parser.error(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
     if not 1 <= args.chunks <= args.trials:
         parser.error(f"--chunks must lie in 1..--trials = {args.trials}, got {args.chunks}")
+    if (why := device_error(args.device)) is not None:
+        parser.error(why)
     if args.backend != "local" and args.stop_after_checkpoints:
         parser.error("--stop-after-checkpoints is a testing aid of --backend local")
     return args

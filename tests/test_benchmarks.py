@@ -24,6 +24,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
             + ["--slow-size", "4"],
             "| slow chain walk (500 µs per row-step) | 4 |",
         ),
+        (["bench_device.py", "--quick"], "| cpu | 4 | "),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):

@@ -156,8 +156,9 @@ class ActivePolicyIteration:
         checkpoint_path: if set, the whole state is saved there (atomically) right after each
             batch of rewarded episodes is bought and after every iteration; resume with
             :meth:`load` on an instance built with the same arguments.
-        device: where psi_hat, J and the solves run (e.g. ``"cuda"``); environments, rollouts
-            and the stored episodes stay on the environments' device. Default: CPU.
+        device: where psi_hat, J and the solves run (e.g. ``"cuda"``). The rollouts stay on
+            the environments' device (the policies' θ follows the observations) and the
+            episode buffers are held on the CPU. Default: CPU.
         reward_free_workers: if > 0, the reward-free episodes are collected in this many worker
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``

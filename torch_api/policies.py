@@ -256,7 +256,7 @@ class TabularPolicy(ActionProbsPolicy):
                 f"[{int(index.min())}, {int(index.max())}]"
             )
         extra = index.ndim - len(lead)
-        table = self.table.reshape(*lead, *([1] * extra), *self.table.shape[-2:])
+        table = self.table.to(index.device).reshape(*lead, *([1] * extra), *self.table.shape[-2:])
         table = table.expand(*index.shape, *self.table.shape[-2:])
         return torch.gather(
             table, -2, index[..., None, None].expand(*index.shape, 1, self.num_actions)
@@ -351,9 +351,10 @@ class LinearQPolicy(ActionProbsPolicy):
     def q_values(self, obs: torch.Tensor) -> torch.Tensor:
         """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
         obs = obs.to(torch.float64)
+        theta = self.theta.to(obs.device)  # θ follows the observations (env on CPU or GPU)
         if hasattr(self.basis, "q_values"):  # block-structured fast path
-            return self.basis.q_values(obs, self.theta)
-        return linear_q_values(self.basis.phi_all(obs), self.theta)
+            return self.basis.q_values(obs, theta)
+        return linear_q_values(self.basis.phi_all(obs), theta)
 
     @property
     def param_dims(self) -> tuple[int, ...]:
