@@ -30,6 +30,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
+from torch_api._logging import quiet_storage_notices
+
 __all__ = [
     "EnvPerBatch",
     "EpisodeBuffer",
@@ -266,7 +268,7 @@ def cat_episodes(parts: list[TensorDictBase]) -> TensorDictBase:
 class EpisodeBuffer:
     """Episodes in a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage``, one item an episode.
 
-    Two buffers are kept apart (TORCHRL-NOTES.md: one storage silently accepts TensorDicts
+    Two buffers are kept apart (docs/torchrl_stack.md: one storage silently accepts TensorDicts
     missing a key): ``rewarded=True`` holds bought episodes with their rewards,
     ``rewarded=False`` reward-free ones and refuses any reward.
 
@@ -331,7 +333,9 @@ class EpisodeBuffer:
                     f"episode keys differ from those held: {sorted(map(str, held ^ new))}"
                 )
         items = episodes.permute(-2, *range(len(trial_dims)), -1) if trial_dims else episodes
-        self._buffer.extend(items.contiguous())  # (the buffer writes an "index" key into its input)
+        # (the buffer writes an "index" key into its input; no TorchRL INFO line on first write)
+        with quiet_storage_notices():
+            self._buffer.extend(items.contiguous())
         self._steps, self._trial_dims = steps, trial_dims
 
     def episodes(self) -> TensorDictBase:
