@@ -77,7 +77,7 @@ from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
-from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.policies import TIE_BREAKS, LinearQPolicy  # noqa: E402
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 METHODS = {"AL": "active", "PL": "passive"}
@@ -100,6 +100,9 @@ class Args:
     """Z, J-values averaged into J'"""
     lam: float = 1e-3
     """λ, ridge regularisation"""
+    tie_break: str = "uniform"
+    """how ε-greedy policies share the greedy mass among tied actions: 'uniform' (equal parts,
+    so pi_1 of θ_0 = 1 is uniform) or 'lowest' (all to action 0, 'left')"""
     schedule: str = "both"
     """'decreasing', 'fixed' or 'both'"""
     iterations: int = 7
@@ -138,6 +141,8 @@ def parse_args(argv=None) -> Args:
         raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
     if args.backend not in BACKENDS:
         raise ValueError(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
+    if args.tie_break not in TIE_BREAKS:
+        raise ValueError(f"--tie-break must be one of {TIE_BREAKS}, got {args.tie_break!r}")
     if not 1 <= args.chunks <= args.trials:
         raise ValueError(f"--chunks must lie in 1 … --trials = {args.trials}, got {args.chunks}")
     if (why := device_error(args.device)) is not None:
@@ -223,6 +228,7 @@ def run_chunk(chunk: Chunk) -> dict:
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="grouped",
+        tie_break=args.tie_break,
         evaluate=evaluate,
         num_trials=len(chunk.trials),
         seed=run_seed,
@@ -230,7 +236,7 @@ def run_chunk(chunk: Chunk) -> dict:
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
     )
-    first = LinearQPolicy(basis=basis, theta=api.policy.theta, epsilon=api.policy.epsilon)
+    first = api.policy.with_rule(epsilon=api.policy.epsilon)  # pi_1, its own streams below
     first.block_generators = [
         torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
     ]
@@ -269,17 +275,21 @@ def mean_se(values) -> tuple[float, float]:
 
 
 def paired_tests(runs: dict) -> dict:
-    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure."""
+    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure.
+
+    ``t`` and ``p`` are None where the test is undefined: every pair identical (AL chose pi_l
+    itself in every iteration of every trial, so the paired runs bought the same episodes).
+    """
     al, pl = runs["AL"]["iterations"][-1], runs["PL"]["iterations"][-1]
     out = {}
     for measure in ("test_return", "exact_return"):
         a, p = np.asarray(al[measure]), np.asarray(pl[measure])
-        test = scipy.stats.ttest_rel(a, p)
+        test = None if np.all(a - p == (a - p)[0]) else scipy.stats.ttest_rel(a, p)
         out[measure] = {
             "iteration": al["iteration"],
             "mean_difference": float((a - p).mean()),
-            "t": float(test.statistic),
-            "p": float(test.pvalue),
+            "t": None if test is None else float(test.statistic),
+            "p": None if test is None else float(test.pvalue),
             "al_better_share": float((a > p).mean()),
             "al_worse_share": float((a < p).mean()),
         }
@@ -385,9 +395,10 @@ def print_table(results: dict, args: Args, wall: float) -> None:
     )
     for name, res in results.items():
         for measure, t in res["t_tests"].items():
+            stat = "undefined" if t["t"] is None else f"{t['t']:8.3f} {t['p']:10.3g}"
             print(
-                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {t['t']:8.3f} "
-                f"{t['p']:10.3g} {t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
+                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {stat:>19} "
+                f"{t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
             )
 
 
