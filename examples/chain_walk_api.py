@@ -65,6 +65,9 @@ class Args:
     """Z, J-values averaged into J'"""
     lam: float = field(1e-3, above=0)
     """λ, ridge regularisation"""
+    tie_break: str = field("uniform", choices=("uniform", "lowest"))
+    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
+    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'left')"""
     schedule: str = field("both", choices=("decreasing", "fixed", "both"))
     """rewarded-episode schedule: decreasing (5,5,3,3,3,1,1), fixed (3 x 7) or both"""
     iterations: int = field(7, low=1, high=7)
@@ -230,6 +233,7 @@ def run_chunk(chunk: Chunk) -> dict:
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="grouped",
+        tie_break=args.tie_break,
         evaluate=evaluate,
         num_trials=len(chunk.trials),
         seed=run_seed,
@@ -237,7 +241,7 @@ def run_chunk(chunk: Chunk) -> dict:
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
     )
-    first = LinearQPolicy(basis=basis, theta=api.policy.theta, epsilon=api.policy.epsilon)
+    first = api.policy.with_rule(epsilon=api.policy.epsilon)  # pi_1, its own streams below
     first.block_generators = [
         torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
     ]
@@ -276,17 +280,21 @@ def mean_se(values) -> tuple[float, float]:
 
 
 def paired_tests(runs: dict) -> dict:
-    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure."""
+    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure.
+
+    ``t`` and ``p`` are None where the test is undefined: every pair identical (AL chose pi_l
+    itself in every iteration of every trial, so the paired runs bought the same episodes).
+    """
     al, pl = runs["AL"]["iterations"][-1], runs["PL"]["iterations"][-1]
     out = {}
     for measure in ("test_return", "exact_return"):
         a, p = np.asarray(al[measure]), np.asarray(pl[measure])
-        test = scipy.stats.ttest_rel(a, p)
+        test = None if np.all(a - p == (a - p)[0]) else scipy.stats.ttest_rel(a, p)
         out[measure] = {
             "iteration": al["iteration"],
             "mean_difference": float((a - p).mean()),
-            "t": float(test.statistic),
-            "p": float(test.pvalue),
+            "t": None if test is None else float(test.statistic),
+            "p": None if test is None else float(test.pvalue),
             "al_better_share": float((a > p).mean()),
             "al_worse_share": float((a < p).mean()),
         }
@@ -392,9 +400,10 @@ def print_table(results: dict, args: Args, wall: float) -> None:
     )
     for name, res in results.items():
         for measure, t in res["t_tests"].items():
+            stat = "undefined" if t["t"] is None else f"{t['t']:8.3f} {t['p']:10.3g}"
             print(
-                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {t['t']:8.3f} "
-                f"{t['p']:10.3g} {t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
+                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {stat:>19} "
+                f"{t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
             )
 
 

@@ -209,7 +209,11 @@ def make_evaluator(args: Args):
 
     def balanced(policy: LinearQPolicy, epsilon) -> torch.Tensor:
         tester = LinearQPolicy(
-            basis=policy.basis, theta=policy.theta, epsilon=epsilon, generator=generator
+            basis=policy.basis,
+            theta=policy.theta,
+            epsilon=epsilon,
+            tie_break=policy.tie_break,
+            generator=generator,
         )
         episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
         return (episodes[REWARD_KEY] * episodes["mask"]).sum(-1).double().mean(-1)  # [T]

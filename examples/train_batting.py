@@ -50,9 +50,12 @@ cleanup) right after the K-th checkpoint of this invocation is written, to simul
 interruption (from a fresh start, odd K stops just after rewarded episodes were bought, even K
 after an iteration).
 
-Note: θ_0 = 1 gives both actions the same Q̂_0, the tie goes to action 0 (cock the arm), so pi_1
-cocks with probability 0.925 per step and hits the ball in about 0.1 % of episodes (ε = 0.3: about
-1.4 %). Many PL trials therefore never see a reward, θ stays 0 and their performance stays 0.
+Ties: θ_0 = 1 gives both actions the same Q̂_0, and so does θ = 0 (a run that has seen no
+reward yet). By default (``--tie-break uniform``) tied actions share the greedy mass equally, so
+pi_1 is uniformly random (it hits the ball in about half of its episodes). With ``--tie-break
+lowest`` the tie goes to action 0 (cock the arm): pi_1 cocks with probability 0.925 per step and
+hits the ball in about 0.1 % of episodes, and a PL trial that sees no reward keeps θ = 0 and that
+policy for ever.
 """
 
 from __future__ import annotations
@@ -78,6 +81,9 @@ class Args:
     """Z, J-values averaged into J'"""
     lam: float = field(1e-3, above=0)
     """λ, ridge regularisation"""
+    tie_break: str = field("uniform", choices=("uniform", "lowest"))
+    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
+    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'cock')"""
     seed: int = 0
     """seed of the runs (AL and PL share it: paired rewarded and test environments)"""
     device: str = "cpu"
@@ -298,6 +304,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
+        tie_break=args.tie_break,
         evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),
         seed=seed,
@@ -368,7 +375,7 @@ def mean_se(values) -> tuple[float, float]:
 def paired_test(al, pl) -> dict:
     """Two-tailed paired t-test of AL vs PL performance (None when undefined)."""
     al, pl = np.asarray(al, dtype=np.float64), np.asarray(pl, dtype=np.float64)
-    if len(al) < 2 or np.all(al == pl):
+    if len(al) < 2 or np.all(al - pl == (al - pl)[0]):  # no spread in the differences
         return {"t": None, "p": None}
     res = scipy.stats.ttest_rel(al, pl)
     return {"t": float(res.statistic), "p": float(res.pvalue)}
