@@ -50,31 +50,104 @@ cleanup) right after the K-th checkpoint of this invocation is written, to simul
 interruption (from a fresh start, odd K stops just after rewarded episodes were bought, even K
 after an iteration).
 
-Note: θ_0 = 1 gives both actions the same Q̂_0, the tie goes to action 0 (cock the arm), so pi_1
-cocks with probability 0.925 per step and hits the ball in about 0.1 % of episodes (ε = 0.3: about
-1.4 %). Many PL trials therefore never see a reward, θ stays 0 and their performance stays 0.
+Ties: θ_0 = 1 gives both actions the same Q̂_0, and so does θ = 0 (a run that has seen no
+reward yet). By default (``--tie-break uniform``) tied actions share the greedy mass equally, so
+pi_1 is uniformly random (it hits the ball in about half of its episodes). With ``--tie-break
+lowest`` the tie goes to action 0 (cock the arm): pi_1 cocks with probability 0.925 per step and
+hits the ball in about 0.1 % of episodes, and a PL trial that sees no reward keeps θ = 0 and that
+policy for ever.
 """
 
 from __future__ import annotations
 
-import csv
-import dataclasses
-import json
-import logging
-import math
-import os
-import time
-import zlib
 from dataclasses import dataclass
-from pathlib import Path
 
-import matplotlib
+from _cli import BACKENDS, field, first_line, parse
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the batting experiment."""
+
+    trials: int = field(8, low=1)
+    """T, independent trials, all run as one batch (the paper: 500)"""
+    schedule: str = field("decreasing", choices=("decreasing", "fixed", "both"))
+    """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
+    iterations: int = field(7, low=1, high=7)
+    """how many of the schedule's L = 7 iterations to run"""
+    episodes: int = field(0, low=0)
+    """if > 0, M_l of every iteration (replaces the schedule's numbers)"""
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation"""
+    tie_break: str = field("uniform", choices=("uniform", "lowest"))
+    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
+    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'cock')"""
+    seed: int = 0
+    """seed of the runs (AL and PL share it: paired rewarded and test environments)"""
+    device: str = "cpu"
+    """where the algebra runs (cpu, cuda or cuda:N); physics is MuJoCo on the CPU"""
+    out_dir: str = "results/train_batting"
+    """where the JSON, CSV, figure and checkpoints go"""
+    resume: bool = False
+    """continue every run from its checkpoint in out_dir; completed runs are not recomputed"""
+    stop_after_checkpoints: int = field(0, low=0)
+    """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
+    backend: str = field("local", choices=BACKENDS)
+    """where the chunks of trials run: local (here, one after another), processes (a pool of
+    local worker processes) or ray"""
+    chunks: int = field(1, low=1)
+    """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
+    workers: int = field(0, low=0)
+    """processes backend: worker processes (0: one per CPU core)"""
+    physics_audit: float = field(0.0, low=0.0, high=1.0)
+    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
+    physics steps are counted either way"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
+    ray_cpus: int = field(0, low=0)
+    """CPUs of a local Ray instance (0: all)"""
+
+
+def check(args: Args) -> str | None:
+    if args.chunks > args.trials:
+        return f"--chunks must lie in 1..{args.trials} (--trials), got {args.chunks}"
+    if args.backend != "local" and args.stop_after_checkpoints:
+        return "--stop-after-checkpoints is a testing aid of --backend local"
+    return None
+
+
+def parse_args(argv=None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
+        "cores). The paper's run: --trials 500 --schedule both",
+        check=check,
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import csv  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+import time  # noqa: E402
+import zlib  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
-from _cli import dataclass_parser, device_error  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
@@ -87,7 +160,6 @@ from envs.batting import (  # noqa: E402
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import (  # noqa: E402
-    BACKENDS,
     run_chunks,
     split_trials,
     threads_per_worker,
@@ -101,75 +173,6 @@ MODES = {"active": "AL", "passive": "PL"}
 PER_TRIAL = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")  # [L][T] lists
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the batting experiment."""
-
-    trials: int = 8
-    """T, independent trials, all run as one batch (the paper: 500)"""
-    schedule: str = "decreasing"
-    """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
-    iterations: int = 7
-    """how many of the schedule's L = 7 iterations to run"""
-    episodes: int = 0
-    """if > 0, M_l of every iteration (replaces the schedule's numbers)"""
-    repeats: int = 5
-    """Z, J-values averaged into J'"""
-    lam: float = 1e-3
-    """λ, ridge regularisation"""
-    seed: int = 0
-    """seed of the runs (AL and PL share it: paired rewarded and test environments)"""
-    device: str = "cpu"
-    """where the algebra runs (cpu or cuda); physics is MuJoCo on the CPU"""
-    out_dir: str = "results/train_batting"
-    """where the JSON, CSV, figure and checkpoints go"""
-    resume: bool = False
-    """continue every run from its checkpoint in out_dir; completed runs are not recomputed"""
-    stop_after_checkpoints: int = 0
-    """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
-    backend: str = "local"
-    """where the chunks of trials run: local (here, one after another), processes (a pool of
-    local worker processes) or ray"""
-    chunks: int = 1
-    """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
-    workers: int = 0
-    """processes backend: worker processes (0: one per CPU core)"""
-    physics_audit: float = 0.0
-    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
-    physics steps are counted either way"""
-    ray_address: str = ""
-    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
-    ray_cpus: int = 0
-    """CPUs of a local Ray instance (0: all)"""
-
-
-def parse_args(argv=None) -> Args:
-    parser = dataclass_parser(
-        Args,
-        __doc__.split("\n")[0],
-        epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
-        "cores). The paper's run: --trials 500 --schedule both",
-    )
-    args = Args(**vars(parser.parse_args(argv)))
-    if args.schedule not in (*SCHEDULES, "both"):
-        parser.error(f"--schedule must be decreasing, fixed or both, got {args.schedule!r}")
-    if not 1 <= args.iterations <= 7:
-        parser.error(f"--iterations must lie in 1..7, got {args.iterations}")
-    if args.trials < 1 or args.repeats < 1 or args.episodes < 0 or args.workers < 0:
-        parser.error("--trials and --repeats must be >= 1, --episodes and --workers >= 0")
-    if not 0.0 <= args.physics_audit <= 1.0:
-        parser.error(f"--physics-audit must lie in [0, 1], got {args.physics_audit}")
-    if args.backend not in BACKENDS:
-        parser.error(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
-    if not 1 <= args.chunks <= args.trials:
-        parser.error(f"--chunks must lie in 1..--trials = {args.trials}, got {args.chunks}")
-    if (why := device_error(args.device)) is not None:
-        parser.error(why)
-    if args.backend != "local" and args.stop_after_checkpoints:
-        parser.error("--stop-after-checkpoints is a testing aid of --backend local")
-    return args
 
 
 def schedule_of(args: Args, name: str) -> list[int]:
@@ -298,6 +301,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
+        tie_break=args.tie_break,
         evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),
         seed=seed,
@@ -368,7 +372,7 @@ def mean_se(values) -> tuple[float, float]:
 def paired_test(al, pl) -> dict:
     """Two-tailed paired t-test of AL vs PL performance (None when undefined)."""
     al, pl = np.asarray(al, dtype=np.float64), np.asarray(pl, dtype=np.float64)
-    if len(al) < 2 or np.all(al == pl):
+    if len(al) < 2 or np.all(al - pl == (al - pl)[0]):  # no spread in the differences
         return {"t": None, "p": None}
     res = scipy.stats.ttest_rel(al, pl)
     return {"t": float(res.statistic), "p": float(res.pvalue)}
