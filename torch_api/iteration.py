@@ -13,10 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
+from torch_api.actions import ActionEncoding
 from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes, seed_env
 from torch_api.design import build_design
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
@@ -178,6 +180,13 @@ class ActivePolicyIteration:
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
             must then be a picklable callable ``batch_size -> env``.
+        initial_episodes: a warm start: rewarded episodes already bought (with any sampling
+            policy that recorded its probabilities), stored first in ``api.rewarded`` and used
+            by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
+            ``Collector``'s batch, or a list of consecutive batches whose cut trajectories are
+            joined; ``env.rollout`` output) or the library's format
+            (:meth:`~torch_api.data.EpisodeBuffer.extend`). With ``num_trials`` every trial
+            starts from the same episodes.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -221,6 +230,7 @@ class ActivePolicyIteration:
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
         reward_free_workers: int = 0,
+        initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -294,7 +304,15 @@ class ActivePolicyIteration:
                 )
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.iteration = 0  # iterations completed
-        self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))  # per trial
+        warm = _warm_start(initial_episodes, self.trial_dims)
+        self.rewarded = EpisodeBuffer(  # per trial
+            rewarded=True, capacity=sum(schedule) + (0 if warm is None else warm.shape[-2])
+        )
+        if warm is not None:
+            self.rewarded.extend(warm)
+        self._action_encoding = None  # the env's action encoding, read from its first instance
+        if isinstance(env, EnvBase):
+            self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
         num_candidates = len(
             SOFTMAX_CANDIDATE_SCALES if improvement == "softmax" else self.candidate_offsets
         )
@@ -337,6 +355,7 @@ class ActivePolicyIteration:
             theta=theta,
             generator=self.generator,
             tie_break=self.tie_break,
+            action_spec=self._action_encoding,
             **rule,
         )
 
@@ -405,7 +424,11 @@ class ActivePolicyIteration:
                 torch.Generator().manual_seed(s)
                 for s in self.block_seeds(iteration, "reward_free_policy")
             ]
-        seed_env(self._env_for(trials * num_episodes), *self._env_seeds(iteration, "rewarded_env"))
+        env = self._env_for(trials * num_episodes)
+        if self._action_encoding is None:  # the policies write actions in the env's encoding
+            self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
+            self.policy = self.policy.with_action_spec(self._action_encoding)
+        seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
             self.selector.seed_env(batch, *self._env_seeds(iteration, "reward_free_env"))
@@ -601,3 +624,17 @@ class ActivePolicyIteration:
         for _ in tqdm(remaining, desc=f"API ({self.mode})", disable=not progress):
             self.step()
         return self.history
+
+
+def _warm_start(data, trial_dims: tuple[int, ...]) -> TensorDictBase | None:
+    """``initial_episodes`` in the library's format ``[*T, M, N]`` (None: no warm start)."""
+    if data is None:
+        return None
+    batches = [data] if isinstance(data, TensorDictBase) else list(data)
+    if not batches:
+        return None
+    joined = EpisodeBuffer(rewarded=True, capacity=sum(b.numel() for b in batches))
+    for batch in batches:  # consecutive collector batches: cut trajectories are joined
+        joined.extend(batch)
+    episodes = joined.episodes()
+    return episodes.expand(*trial_dims, *episodes.shape).clone() if trial_dims else episodes
