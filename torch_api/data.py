@@ -49,6 +49,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torch_api._logging import quiet_storage_notices
 from torch_api.actions import ActionEncoding, check_actions
 from torch_api.policies import ActionProbsPolicy
 from torch_api.streams import seed_env
@@ -652,7 +653,7 @@ def cat_episodes(parts: list[TensorDictBase]) -> TensorDictBase:
 class EpisodeBuffer:
     """Episodes in a ``TensorDictReplayBuffer`` over a ``LazyTensorStorage``, one item an episode.
 
-    Two buffers are kept apart (TORCHRL-NOTES.md: one storage silently accepts TensorDicts
+    Two buffers are kept apart (docs/torchrl_stack.md: one storage silently accepts TensorDicts
     missing a key): ``rewarded=True`` holds bought episodes with their rewards,
     ``rewarded=False`` reward-free ones and refuses any reward.
 
@@ -741,7 +742,9 @@ class EpisodeBuffer:
             episodes = pad_steps(episodes, self._steps)
         first = len(self)
         items = episodes.permute(-2, *range(len(trial_dims)), -1) if trial_dims else episodes
-        self._buffer.extend(items.contiguous())  # (the buffer writes an "index" key into its input)
+        # (the buffer writes an "index" key into its input; no TorchRL INFO line on first write)
+        with quiet_storage_notices():
+            self._buffer.extend(items.contiguous())
         self._steps, self._trial_dims = episodes.shape[-1], trial_dims
         if traj_ids is not None and not trial_dims:
             pairs = zip(traj_ids.tolist(), going_on.tolist(), strict=True)
@@ -754,7 +757,8 @@ class EpisodeBuffer:
         trial_dims = tuple(episodes.shape[:-2])
         items = episodes.permute(-2, *range(len(trial_dims)), -1) if trial_dims else episodes
         self._buffer = self._new_buffer()
-        self._buffer.extend(items.contiguous())
+        with quiet_storage_notices():
+            self._buffer.extend(items.contiguous())
         self._steps = episodes.shape[-1]
 
     def _join_open(self, episodes, traj_ids, going_on):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import time
@@ -38,6 +39,7 @@ from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
 CHECKPOINT_FORMAT = 1  # version of the checkpoint layout written by ActivePolicyIteration.save
+_log = logging.getLogger(__name__)
 _STREAMS = {
     "policy": 0,
     "reward_free_env": 1,
@@ -541,6 +543,14 @@ class ActivePolicyIteration:
         self.iteration = l_now
         self.history.append(record)
         self._checkpoint()
+        _log.info(
+            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
+            self.mode,
+            l_now,
+            len(self.schedule),
+            seconds,
+            self.rewarded_transitions,
+        )
         return record
 
     # -- durable state -----------------------------------------------------------------------
