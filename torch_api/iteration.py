@@ -447,6 +447,7 @@ class ActivePolicyIteration:
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
             self.policy = self.policy.with_action_spec(self._action_encoding)
+            self.selector.action_encoding = self._action_encoding
         seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
