@@ -121,6 +121,9 @@ class Args:
     rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. 0.785,3.14,0.785,3.14"""
     end_at_hit: bool = False
     """beyond the paper: episodes terminate at the first bat-ball contact (the ball is gone)"""
+    fit: str = field("brm", choices=("brm", "lstd"))
+    """how θ is fitted: brm (the paper: least squares of r on psi_hat) or lstd (beyond the paper:
+    LSTD-Q, with AL's J of the same learner)"""
 
 
 def parse_widths(text: str) -> list[float] | None:
@@ -361,6 +364,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
+        fit=args.fit,
         tie_break=args.tie_break,
         evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),

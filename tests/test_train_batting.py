@@ -142,8 +142,9 @@ def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrup
 
 
 def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
-    """Scaled basis and episodes that end at the hit: ended episodes buy fewer transitions."""
-    proc = run_script(tmp_path, "--basis-widths", "0.785,3.14,0.785,3.14", "--end-at-hit")
+    """Scaled basis, episodes that end at the hit (fewer transitions bought) and LSTD-Q."""
+    widths = ("--basis-widths", "0.785,3.14,0.785,3.14")
+    proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
     payload = json.loads((tmp_path / "train_batting.json").read_text())
