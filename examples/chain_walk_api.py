@@ -48,7 +48,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import BACKENDS, field, first_line, parse
+from _cli import BACKENDS, LOGGERS, field, first_line, log_means, make_logger, parse
 
 
 @dataclass
@@ -93,6 +93,9 @@ class Args:
     """CPUs of a local Ray instance (0: all)"""
     device: str = "cpu"
     """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all of it"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
 
 
 def check(args: Args) -> str | None:
@@ -463,6 +466,12 @@ def main(argv=None) -> dict:
     (out / "chain_walk_api.json").write_text(json.dumps(payload))
     write_csv(results, out / "chain_walk_api.csv")
     plot(results, out / "fig8_performance.png")
+    logger = make_logger(args.logger, out, "chain_walk_api")
+    for name, res in results.items():
+        for method, run in res["runs"].items():
+            for it in run["iterations"]:
+                curves = {k: it[k] for k in (*MEASURES, "rewarded_transitions")}
+                log_means(logger, f"{name}/{method}", it["iteration"], curves)
     print(f"wrote {out}/chain_walk_api.json, chain_walk_api.csv and fig8_performance.png")
     return payload
 

@@ -70,7 +70,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import BACKENDS, field, first_line, parse
+from _cli import BACKENDS, LOGGERS, field, first_line, log_means, make_logger, parse
 
 
 @dataclass
@@ -116,6 +116,9 @@ class Args:
     """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
     ray_cpus: int = field(0, low=0)
     """CPUs of a local Ray instance (0: all)"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
     basis_widths: str = ""
     """beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (rad, rad/s, rad,
     rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. 0.785,3.14,0.785,3.14"""
@@ -666,6 +669,13 @@ def main(argv=None) -> dict:
     payload["physics_audit"] = audit  # for benchmarks/bench_figure10.py; not in the JSON
     write_csv(results, out / "train_batting.csv")
     plot(results, out / "fig10_performance.png")
+    logger = make_logger(args.logger, out, "train_batting")
+    for name, res in results.items():
+        for run in res["runs"].values():
+            for i, perf in enumerate(run["performance"]):
+                curves = {"performance": perf, "hit_share": run["hit_share"][i]}
+                curves["rewarded_transitions"] = run["rewarded_transitions"][i]
+                log_means(logger, f"{name}/{run['method']}", i + 1, curves)
     steps = audit.steps
     print(f"\nphysics: {steps['coarse']:,} coarse + {steps['fine']:,} fine MuJoCo steps")
     print(f"wall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")

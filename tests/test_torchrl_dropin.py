@@ -317,3 +317,51 @@ def test_warm_start_from_collector_batches_of_an_actor():
     held = api.rewarded.episodes()
     assert len(held) == warm + 2 and (held["policy_id"][:warm] == -1).all()
     assert torch.isfinite(api.theta).all()
+
+
+def _whole_trajectories(max_steps):
+    def make_collector(policy, num_episodes):
+        env = TransformedEnv(cartpole(), StepCounter(max_steps=max_steps))
+        return Collector(
+            env,
+            policy,
+            frames_per_batch=num_episodes * max_steps,
+            total_frames=-1,
+            trajs_per_batch=num_episodes,
+            traj_format="padded",
+            auto_register_policy_transforms=False,
+        )
+
+    return make_collector
+
+
+def test_iteration_and_selector_read_episodes_from_the_users_collector():
+    torch.manual_seed(0)
+    api = ActivePolicyIteration(
+        env=cartpole(),
+        basis=cartpole_basis(),
+        schedule=(3, 2),
+        num_steps=10,
+        gamma=0.95,
+        num_repeats=1,
+        candidate_offsets=(0.0, 0.5),
+        collector=_whole_trajectories(10),
+        seed=0,
+    )
+    api.run()
+    bought = api.rewarded.episodes()
+    assert bought.shape == (5, 10) and applied_share(bought) == 1.0
+    assert api.reward_free.episodes().shape == (2 * 3 + 2 * 2, 10)  # K·Z·M_l per iteration
+    assert applied_share(api.reward_free.episodes()) == 1.0
+    # the selector alone, with a candidate that is not the library's
+    psi = PsiHat(basis=cartpole_basis(), gamma=0.95)
+    selector = SamplingPolicySelector(
+        env=cartpole(),
+        psi=psi,
+        num_episodes=2,
+        num_steps=10,
+        num_repeats=1,
+        collector=_whole_trajectories(10),
+    )
+    choice = selector.select(api.policy, [api.policy, _actor(cartpole())], bought)
+    assert choice.episodes.shape == (1, 2, 2, 10) and torch.isfinite(choice.j_mean).all()

@@ -5,7 +5,12 @@ The pure tensor functions (one concept a module) and the components built on the
 >>> import torch_api
 >>> sorted(torch_api.__all__)[:4]
 ['ActionEncoding', 'ActionProbsPolicy', 'ActivePolicyIteration', 'BlockSeeded']
+>>> torch_api.__version__  # the installed distribution's version (pyproject.toml)
+'0.1.0'
 """
+
+import logging
+from importlib.metadata import PackageNotFoundError, version
 
 from torch_api.actions import ActionEncoding
 from torch_api.basis import GaussianActionBasis
@@ -25,6 +30,14 @@ from torch_api.selector import SamplingPolicySelector, j_values
 from torch_api.solve import j_criterion, weighted_moment, weighted_ridge
 from torch_api.streams import BlockSeeded, seed_env
 from torch_api.weights import per_decision_weights
+
+try:
+    __version__ = version("torch-api")
+except PackageNotFoundError:  # a checkout on PYTHONPATH, not installed
+    __version__ = "0.1.0"  # keep equal to pyproject.toml (tests/test_package.py checks)
+
+# the library logs on "torch_api" and never prints; the application decides what shows
+logging.getLogger("torch_api").addHandler(logging.NullHandler())
 
 __all__ = [
     "ActionEncoding",

@@ -28,7 +28,7 @@ class GaussianActionBasis(nn.Module):
 
     ``k_c(s) = exp(-||s - c_c||² / (2 τ²))``. Each action owns one block of ``C + 1`` entries,
     so ``B = A (C + 1)``. The paper interleaves the actions; this module lays the blocks out one
-    action after another, which changes nothing downstream (SPEC section 3).
+    action after another, which changes nothing downstream (docs/algorithm.md).
 
     Any module with the same two methods (``phi_all`` and ``phi``) and the attributes
     ``num_features`` and ``num_actions`` can stand in for this one; ``q_values`` and

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import time
@@ -18,7 +19,13 @@ from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 from torch_api.actions import ActionEncoding
-from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes, seed_env
+from torch_api.data import (
+    EnvPerBatch,
+    EpisodeBuffer,
+    collect_episodes,
+    collect_with_collector,
+    seed_env,
+)
 from torch_api.design import build_design
 from torch_api.lstd import phi_rows, weighted_lstd
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
@@ -34,6 +41,7 @@ from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
 CHECKPOINT_FORMAT = 1  # version of the checkpoint layout written by ActivePolicyIteration.save
+_log = logging.getLogger(__name__)
 _STREAMS = {
     "policy": 0,
     "reward_free_env": 1,
@@ -190,6 +198,14 @@ class ActivePolicyIteration:
             joined; ``env.rollout`` output) or the library's format
             (:meth:`~torch_api.data.EpisodeBuffer.extend`). With ``num_trials`` every trial
             starts from the same episodes.
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
+            ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
+            ``StepCounter(max_steps=N)``): the rewarded and the reward-free episodes are then
+            read from it (:func:`~torch_api.data.collect_with_collector`) instead of from
+            ``env.rollout`` (the default; faster on batched envs). The collector's env is then
+            seeded by the user, not by ``seed``; ``env`` still names the env (its action
+            encoding). Not with ``num_trials``.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -235,6 +251,7 @@ class ActivePolicyIteration:
         reward_free_workers: int = 0,
         fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
+        collector: Callable | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -261,6 +278,9 @@ class ActivePolicyIteration:
             raise ValueError("candidate_offsets must not be empty")
         if num_trials is not None and num_trials < 1:
             raise ValueError(f"num_trials must be >= 1, got {num_trials}")
+        if collector is not None and (num_trials is not None or reward_free_workers):
+            raise ValueError("collector works without num_trials and reward_free_workers")
+        self.collector = collector
         if num_trials is not None and isinstance(env, EnvBase):
             raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
@@ -342,6 +362,7 @@ class ActivePolicyIteration:
             device=self.device,
             num_workers=reward_free_workers,
             fit=fit,
+            collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
 
@@ -465,7 +486,7 @@ class ActivePolicyIteration:
                 free = selection.episodes
                 self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
         try:
-            bought = collect_episodes(
+            bought = self._collect(
                 self._env_for(math.prod(self.trial_dims) * num_episodes),
                 self._with_rule(rules[chosen]),  # one candidate per trial
                 num_episodes=num_episodes,
@@ -491,6 +512,12 @@ class ActivePolicyIteration:
             "seconds": time.perf_counter() - started,
         }
         self._checkpoint()
+
+    def _collect(self, env: EnvBase, policy, **kwargs):
+        """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
+        if self.collector is None:
+            return collect_episodes(env, policy, **kwargs)
+        return collect_with_collector(self.collector, policy, **kwargs)
 
     def step(self) -> IterationRecord:
         """Run one iteration of Algorithm 1 and return its record."""
@@ -534,6 +561,14 @@ class ActivePolicyIteration:
         self.iteration = l_now
         self.history.append(record)
         self._checkpoint()
+        _log.info(
+            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
+            self.mode,
+            l_now,
+            len(self.schedule),
+            seconds,
+            self.rewarded_transitions,
+        )
         return record
 
     # -- durable state -----------------------------------------------------------------------

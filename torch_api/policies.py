@@ -104,7 +104,7 @@ def _check_epsilon(epsilon) -> torch.Tensor:
     eps = torch.as_tensor(epsilon, dtype=torch.float64)
     if not torch.isfinite(eps).all() or (eps < 0).any():
         raise ValueError(f"epsilon must be >= 0, got {epsilon}")
-    return eps.clamp(max=1.0)  # ε is capped at 1 (uniform)
+    return eps.clamp(max=1.0)  # ε is capped at 1, the uniform policy (docs/algorithm.md)
 
 
 def epsilon_greedy_probs(q: torch.Tensor, epsilon, tie_break: str = "uniform") -> torch.Tensor:

@@ -10,7 +10,14 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.data import EnvPerBatch, as_episodes, collect_episodes, joinable, seed_env
+from torch_api.data import (
+    EnvPerBatch,
+    as_episodes,
+    collect_episodes,
+    collect_with_collector,
+    joinable,
+    seed_env,
+)
 from torch_api.design import build_design
 from torch_api.lstd import lstd_j_values
 from torch_api.multiprocess import collect_episodes_in_workers
@@ -239,6 +246,11 @@ class SamplingPolicySelector:
         fit: the learner whose error J estimates: ``"brm"`` (the paper's least-squares fit on
             psi_hat, :func:`j_values`) or ``"lstd"`` (LSTD-Q, beyond the paper,
             :func:`~torch_api.lstd.lstd_j_values`).
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (:func:`~torch_api.data.collect_with_collector`): each candidate's ``Z·M``
+            reward-free episodes are then read from it, candidate by candidate, instead of from
+            ``env.rollout`` (the default, faster on batched envs). Without per-trial
+            parameters only.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -269,6 +281,7 @@ class SamplingPolicySelector:
         max_design_bytes: int = 2**29,
         num_workers: int = 0,
         fit: str = "brm",
+        collector: Callable | None = None,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -296,6 +309,9 @@ class SamplingPolicySelector:
         if fit not in FITS:
             raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
         self.fit = fit
+        if collector is not None and num_workers:
+            raise ValueError("give either collector or num_workers, not both")
+        self.collector = collector
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
 
     def env_for(self, batch: int) -> EnvBase:
@@ -316,7 +332,9 @@ class SamplingPolicySelector:
         ``*T`` are the candidates' trial dims (``param_dims``): rows of the environment batch
         are laid out ``(t, z, k, m)``.
         """
-        if not all(isinstance(c, ActionProbsPolicy) for c in candidates):
+        if self.collector is not None or not all(
+            isinstance(c, ActionProbsPolicy) for c in candidates
+        ):
             return self._collect_each(candidates, iteration)
         trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
         trials = math.prod(trial_dims)
@@ -396,19 +414,29 @@ class SamplingPolicySelector:
                 raise ValueError(
                     "candidates with per-trial parameters cannot be mixed with other policies"
                 )
-        env = self.env_for(z * m)
-        parts = [
-            collect_episodes(
-                env,
-                cand,
-                num_episodes=z * m,
-                num_steps=n,
-                rewarded=False,
-                iteration=iteration,
-                policy_id=i,
-            ).reshape(z, m, n)
-            for i, cand in enumerate(candidates)
-        ]
+        parts = []
+        for i, cand in enumerate(candidates):
+            if self.collector is not None:
+                episodes = collect_with_collector(
+                    self.collector,
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            else:
+                episodes = collect_episodes(
+                    self.env_for(z * m),
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            parts.append(episodes.reshape(z, m, n))
         return torch.stack(joinable(parts), 1)
 
     def _trial_chunks(self, episodes: TensorDictBase, earlier: TensorDictBase | None) -> list:
