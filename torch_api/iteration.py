@@ -27,9 +27,11 @@ from torch_api.data import (
     seed_env,
 )
 from torch_api.design import build_design
+from torch_api.lstd import phi_rows, weighted_lstd
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.selector import (
+    FITS,
     PAPER_EPSILON_OFFSETS,
     SamplingPolicySelector,
     candidate_epsilons,
@@ -186,6 +188,9 @@ class ActivePolicyIteration:
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
             must then be a picklable callable ``batch_size -> env``.
+        fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
+            ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
+            learner; needs ``psi_mode="single"``).
         initial_episodes: a warm start: rewarded episodes already bought (with any sampling
             policy that recorded its probabilities), stored first in ``api.rewarded`` and used
             by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
@@ -244,6 +249,7 @@ class ActivePolicyIteration:
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
         reward_free_workers: int = 0,
+        fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
     ) -> None:
@@ -293,6 +299,11 @@ class ActivePolicyIteration:
         self.improvement = improvement
         self.beta = beta
         self.tie_break = tie_break
+        if fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        if fit == "lstd" and psi_mode != "single":
+            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
+        self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
         if num_trials is None and trial_seeds is not None:
@@ -350,6 +361,7 @@ class ActivePolicyIteration:
             generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
+            fit=fit,
             collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
@@ -519,9 +531,15 @@ class ActivePolicyIteration:
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
         design = build_design(episodes, self.policy.to_device(self.device), self.psi)
-        self.theta = weighted_ridge(
-            design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-        ).cpu()
+        if self.fit == "lstd":
+            phi = phi_rows(episodes, self.basis)
+            self.theta = weighted_lstd(
+                phi, design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
+        else:
+            self.theta = weighted_ridge(
+                design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -571,6 +589,7 @@ class ActivePolicyIteration:
             "psi_mode": self.psi.mode,
             "improvement": self.improvement,
             "tie_break": self.tie_break,
+            "fit": self.fit,
             "num_features": self.basis.num_features,
         }
 
