@@ -384,3 +384,15 @@ def test_missing_sampling_probabilities_name_the_keys_that_work():
 
     with pytest.raises(ValueError, match="sample_log_prob' / 'action_log_prob"):
         collect_episodes(cartpole(), no_probs, num_episodes=1, num_steps=2, rewarded=True)
+
+
+def test_lstd_selector_takes_an_actor_candidate():
+    env = cartpole()
+    psi = PsiHat(basis=cartpole_basis(), gamma=0.95)
+    evaluation = _collector_policy(env, epsilon=0.2)
+    earlier = collect_episodes(env, evaluation, num_episodes=2, num_steps=6, rewarded=True)
+    selector = SamplingPolicySelector(
+        env=lambda rows: cartpole(), psi=psi, num_episodes=2, num_steps=8, num_repeats=1, fit="lstd"
+    )
+    choice = selector.select(evaluation, [evaluation, _actor(env)], earlier_episodes=earlier)
+    assert choice.j_mean.shape == (2,) and torch.isfinite(choice.j_mean).all()
