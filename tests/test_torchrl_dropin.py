@@ -138,8 +138,9 @@ def test_batched_env_factories(factory):
         assert applied_share(api.rewarded.episodes()) == 1.0
         assert api.rewarded_transitions > 0 and torch.isfinite(api.theta).all()
     finally:
-        for env in api._env_for._built.values():
-            env.close()
+        built = list(api._env_for._built.values())
+        api.close()
+    assert built and all(env.is_closed for env in built)
 
 
 def test_frozen_lake_index_observations_with_grouped_psi_hat():

@@ -663,6 +663,13 @@ class ActivePolicyIteration:
         if self.checkpoint_path is not None:
             self.save(self.checkpoint_path)
 
+    def close(self) -> None:
+        """Close the envs built from env factories (rewarded and reward-free), e.g. the worker
+        processes of ``env=lambda rows: ParallelEnv(rows, make_env)``; envs given as such are
+        the caller's to close. The run can go on afterwards (envs are built again)."""
+        self._env_for.close()
+        self.selector.close()
+
     def run(self, *, progress: bool = False) -> list[IterationRecord]:
         """Run the remaining iterations; returns the whole history."""
         remaining = range(self.iteration, len(self.schedule))

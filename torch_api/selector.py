@@ -315,6 +315,10 @@ class SamplingPolicySelector:
         self.action_encoding = None  # the env's action encoding, where known (else probed)
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
 
+    def close(self) -> None:
+        """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""
+        self._envs.close()
+
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
         return self._envs(batch)
