@@ -187,3 +187,18 @@ def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp
     on_ray = json.loads((tmp_path / "chain_walk_api.json").read_text())
     assert _without_times(on_ray) == _without_times(chain_walk_one_chunk)
     _check_png(tmp_path / "fig8_performance.png")
+
+
+def test_torchrl_pipeline(tmp_path):
+    _run(
+        "torchrl_pipeline.py",
+        *("--iterations", "2", "--episodes", "2", "--reward-free-episodes", "1"),
+        *("--repeats", "1", "--steps", "20", "--test-episodes", "2"),
+        *("--out-dir", str(tmp_path)),
+    )
+    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+    history = payload["history"]
+    assert [h["iteration"] for h in history] == [1, 2]
+    assert all(len(h["j_mean"]) == 3 for h in history)  # two θ policies and the actor
+    assert history[-1]["rewarded_transitions"] == 2 * 2 * 20  # MountainCar: no early end here
+    assert all(math.isfinite(x) for x in _numbers(payload["history"]))

@@ -39,6 +39,7 @@ importance weights restart only where the episode really started.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 
@@ -57,12 +58,16 @@ __all__ = [
     "EnvPerBatch",
     "EpisodeBuffer",
     "REWARD_KEY",
+    "SpecCheckedPolicy",
     "as_episodes",
     "cat_episodes",
-    "pad_steps",
-    "taken_sample_probs",
     "collect_episodes",
+    "collect_with_collector",
+    "joinable",
+    "pad_steps",
     "seed_env",
+    "taken_sample_probs",
+    "to_log_prob_form",
     "validate_episodes",
 ]
 
@@ -109,6 +114,14 @@ class EnvPerBatch:
         if batch not in self._built:
             self._built[batch] = self.env(batch)
         return self._built[batch]
+
+    def close(self) -> None:
+        """Close the envs the factory built (a ``ParallelEnv``'s worker processes end); an env
+        given as such is the caller's to close. Later calls build afresh."""
+        built, self._built = self._built, {}
+        for env in built.values():
+            if not getattr(env, "is_closed", False):
+                env.close()
 
 
 def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:
@@ -268,7 +281,14 @@ def _key_list(data: TensorDictBase) -> list[str]:
     return sorted(map(str, data.keys(include_nested=True, leaves_only=True)))
 
 
-def as_episodes(data: TensorDictBase, *, rewarded: bool, action_spec=None) -> TensorDictBase:
+def as_episodes(
+    data: TensorDictBase,
+    *,
+    rewarded: bool,
+    action_spec=None,
+    num_steps: int | None = None,
+    taken_log_prob: bool = False,
+) -> TensorDictBase:
     """TorchRL data as TorchRL produces it -> the library's episode format ``[M, N]``.
 
     Accepts ``env.rollout`` output (``[N]``, or ``[E, N]`` from a batched env, one episode a
@@ -286,6 +306,10 @@ def as_episodes(data: TensorDictBase, *, rewarded: bool, action_spec=None) -> Te
         rewarded: keep (and require) ``("next", "reward")``.
         action_spec: the env's action spec, to read one-hot actions by their encoding (default:
             a trailing dim of 1 is an index, a longer one a one-hot vector).
+        num_steps: pad the episodes to this N (e.g. a replay buffer's fixed episode length).
+        taken_log_prob: keep only ``sample_log_prob``, the log-probability of the taken action
+            (:func:`to_log_prob_form`): the form every sampling policy can give, so episodes of
+            the library's policies and of TorchRL actors share one set of keys (one storage).
 
     Example:
         >>> from torchrl.envs import GymEnv
@@ -303,7 +327,11 @@ def as_episodes(data: TensorDictBase, *, rewarded: bool, action_spec=None) -> Te
     if action_spec is not None:
         encoding = ActionEncoding.from_spec(action_spec, tuple(action_spec.shape[:-1]))
     episodes, _, _ = _from_torchrl(data, rewarded=rewarded, encoding=encoding)
-    return episodes
+    if not rewarded:
+        episodes = episodes.exclude(REWARD_KEY)
+    if num_steps is not None:
+        episodes = pad_steps(episodes, num_steps)
+    return to_log_prob_form(episodes) if taken_log_prob else episodes
 
 
 def pad_steps(episodes: TensorDictBase, num_steps: int) -> TensorDictBase:
@@ -437,13 +465,91 @@ def collect_episodes(
     return episodes
 
 
+def collect_with_collector(
+    make_collector: Callable,
+    policy,
+    *,
+    num_episodes: int,
+    num_steps: int,
+    rewarded: bool,
+    iteration: int = 0,
+    policy_id: int = 0,
+) -> TensorDict:
+    """:func:`collect_episodes` through a TorchRL ``Collector`` of the user's own.
+
+    ``make_collector(policy, num_episodes)`` returns a collector (anything iterable over
+    TorchRL batches: ``torchrl.collectors.Collector``, ideally with
+    ``trajs_per_batch=num_episodes, traj_format="padded"``) running ``policy`` on an env whose
+    episodes last at most ``num_steps`` steps (e.g. a ``StepCounter(max_steps=num_steps)``).
+    Its batches are read as :meth:`EpisodeBuffer.extend` reads them (flat or padded;
+    trajectories cut at a batch's end joined with their continuation) until ``num_episodes``
+    whole episodes are in; the first ``num_episodes`` are kept, padded to ``num_steps``.
+    The collector is shut down afterwards. The collector's env and its exploration type are the
+    user's (a ``Collector`` samples, ``ExplorationType.RANDOM``, by default); every batch's
+    actions are checked against the collector's ``env.action_spec`` where it has one.
+
+    Returns:
+        TensorDict ``[M, N]`` in the format of this module's docstring.
+
+    Raises:
+        ValueError: an episode longer than ``num_steps``, or actions outside the spec.
+    """
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
+    if isinstance(policy, ActionProbsPolicy):
+        policy = copy.copy(policy)  # given the collector env's encoding below
+    collector = make_collector(policy, num_episodes)
+    env = getattr(collector, "env", None)
+    row_spec = getattr(env, "action_spec", None)
+    if row_spec is not None and isinstance(policy, ActionProbsPolicy):
+        encoding = ActionEncoding.from_spec(row_spec, tuple(env.batch_size))
+        policy.action_encoding, policy.one_hot = encoding, encoding.one_hot
+    for _ in range(len(getattr(env, "batch_size", ()))):
+        row_spec = row_spec[0]  # the spec of one env row
+    buffer = EpisodeBuffer(rewarded=rewarded, capacity=16 * num_episodes + 64)
+    try:
+        for batch in collector:
+            if row_spec is not None:  # the batch's first step is always a real one
+                first = batch["action"].reshape(-1, *row_spec.shape)[0]
+                check_actions(row_spec, first, who=f"the collector's policy {_name(policy)}")
+            buffer.extend(batch)
+            if len(buffer) - len(buffer._open) >= num_episodes:
+                break
+    finally:
+        shutdown = getattr(collector, "shutdown", None)
+        if shutdown is not None:
+            shutdown()
+    if len(buffer) - len(buffer._open) < num_episodes:
+        raise ValueError(
+            f"the collector ended after {len(buffer) - len(buffer._open)} whole episodes, "
+            f"{num_episodes} were asked for"
+        )
+    closed = [i for i in range(len(buffer)) if i not in set(buffer._open.values())]
+    episodes = buffer.episodes()[torch.tensor(closed[:num_episodes])]
+    if episodes.shape[-1] > num_steps:
+        longest = int(episodes["mask"].sum(-1).max())
+        if longest > num_steps:
+            raise ValueError(
+                f"the collector gave an episode of {longest} steps, more than num_steps = "
+                f"{num_steps} (end its env's episodes there, e.g. StepCounter(max_steps=...))"
+            )
+        episodes = episodes[..., :num_steps]
+    episodes = pad_steps(episodes, num_steps)
+    episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
+    episodes["policy_id"] = torch.full(episodes.shape, int(policy_id), dtype=torch.long)
+    validate_episodes(episodes, rewarded=rewarded)
+    return episodes
+
+
 class SpecCheckedPolicy:
     """A policy in the env's action encoding whose every action is checked against the spec.
 
     A policy of this library is given the env's action spec
     (:meth:`~torch_api.policies.ActionProbsPolicy.with_action_spec`); any other policy is
-    called as it is, and its actions are checked with ``env.action_spec.is_in`` right after it
-    wrote them, before the env applies them (:func:`~torch_api.actions.check_actions`).
+    called as it is, and its first actions are checked with ``env.action_spec.is_in`` right
+    after it wrote them, before the env applies them (:func:`~torch_api.actions.check_actions`).
+    (Only the first call is checked: an encoding that fits once fits every step, and a check
+    per step would cost a device synchronisation per step on a GPU.)
 
     Args:
         policy: a TensorDict module (or callable) writing the env's action key.
@@ -460,11 +566,15 @@ class SpecCheckedPolicy:
         self.policy = policy
         self.spec = env.action_spec
         self.action_key = env.action_key
+        self.checked = False
 
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self.policy(tensordict)
         out = tensordict if out is None else out
-        check_actions(self.spec, out.get(self.action_key), who=f"the policy {_name(self.policy)}")
+        if not self.checked:
+            action = out.get(self.action_key)
+            check_actions(self.spec, action, who=f"the policy {_name(self.policy)}")
+            self.checked = True
         return out
 
 

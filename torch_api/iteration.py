@@ -19,11 +19,19 @@ from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 from torch_api.actions import ActionEncoding
-from torch_api.data import EnvPerBatch, EpisodeBuffer, collect_episodes, seed_env
+from torch_api.data import (
+    EnvPerBatch,
+    EpisodeBuffer,
+    collect_episodes,
+    collect_with_collector,
+    seed_env,
+)
 from torch_api.design import build_design
+from torch_api.lstd import phi_rows, weighted_lstd
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.selector import (
+    FITS,
     PAPER_EPSILON_OFFSETS,
     SamplingPolicySelector,
     candidate_epsilons,
@@ -180,6 +188,9 @@ class ActivePolicyIteration:
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
             must then be a picklable callable ``batch_size -> env``.
+        fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
+            ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
+            learner; needs ``psi_mode="single"``).
         initial_episodes: a warm start: rewarded episodes already bought (with any sampling
             policy that recorded its probabilities), stored first in ``api.rewarded`` and used
             by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
@@ -187,6 +198,14 @@ class ActivePolicyIteration:
             joined; ``env.rollout`` output) or the library's format
             (:meth:`~torch_api.data.EpisodeBuffer.extend`). With ``num_trials`` every trial
             starts from the same episodes.
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
+            ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
+            ``StepCounter(max_steps=N)``): the rewarded and the reward-free episodes are then
+            read from it (:func:`~torch_api.data.collect_with_collector`) instead of from
+            ``env.rollout`` (the default; faster on batched envs). The collector's env is then
+            seeded by the user, not by ``seed``; ``env`` still names the env (its action
+            encoding). Not with ``num_trials``.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -230,7 +249,9 @@ class ActivePolicyIteration:
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
         reward_free_workers: int = 0,
+        fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
+        collector: Callable | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -257,6 +278,9 @@ class ActivePolicyIteration:
             raise ValueError("candidate_offsets must not be empty")
         if num_trials is not None and num_trials < 1:
             raise ValueError(f"num_trials must be >= 1, got {num_trials}")
+        if collector is not None and (num_trials is not None or reward_free_workers):
+            raise ValueError("collector works without num_trials and reward_free_workers")
+        self.collector = collector
         if num_trials is not None and isinstance(env, EnvBase):
             raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
@@ -275,6 +299,11 @@ class ActivePolicyIteration:
         self.improvement = improvement
         self.beta = beta
         self.tie_break = tie_break
+        if fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        if fit == "lstd" and psi_mode != "single":
+            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
+        self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
         if num_trials is None and trial_seeds is not None:
@@ -332,6 +361,8 @@ class ActivePolicyIteration:
             generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
+            fit=fit,
+            collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
 
@@ -428,6 +459,7 @@ class ActivePolicyIteration:
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
             self.policy = self.policy.with_action_spec(self._action_encoding)
+            self.selector.action_encoding = self._action_encoding
         seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
@@ -455,7 +487,7 @@ class ActivePolicyIteration:
                 free = selection.episodes
                 self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
         try:
-            bought = collect_episodes(
+            bought = self._collect(
                 self._env_for(math.prod(self.trial_dims) * num_episodes),
                 self._with_rule(rules[chosen]),  # one candidate per trial
                 num_episodes=num_episodes,
@@ -482,6 +514,12 @@ class ActivePolicyIteration:
         }
         self._checkpoint()
 
+    def _collect(self, env: EnvBase, policy, **kwargs):
+        """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
+        if self.collector is None:
+            return collect_episodes(env, policy, **kwargs)
+        return collect_with_collector(self.collector, policy, **kwargs)
+
     def step(self) -> IterationRecord:
         """Run one iteration of Algorithm 1 and return its record."""
         if self.iteration >= len(self.schedule):
@@ -493,9 +531,15 @@ class ActivePolicyIteration:
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
         design = build_design(episodes, self.policy.to_device(self.device), self.psi)
-        self.theta = weighted_ridge(
-            design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-        ).cpu()
+        if self.fit == "lstd":
+            phi = phi_rows(episodes, self.basis)
+            self.theta = weighted_lstd(
+                phi, design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
+        else:
+            self.theta = weighted_ridge(
+                design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -545,6 +589,7 @@ class ActivePolicyIteration:
             "psi_mode": self.psi.mode,
             "improvement": self.improvement,
             "tie_break": self.tie_break,
+            "fit": self.fit,
             "num_features": self.basis.num_features,
         }
 
@@ -617,6 +662,13 @@ class ActivePolicyIteration:
     def _checkpoint(self) -> None:
         if self.checkpoint_path is not None:
             self.save(self.checkpoint_path)
+
+    def close(self) -> None:
+        """Close the envs built from env factories (rewarded and reward-free), e.g. the worker
+        processes of ``env=lambda rows: ParallelEnv(rows, make_env)``; envs given as such are
+        the caller's to close. The run can go on afterwards (envs are built again)."""
+        self._env_for.close()
+        self.selector.close()
 
     def run(self, *, progress: bool = False) -> list[IterationRecord]:
         """Run the remaining iterations; returns the whole history."""

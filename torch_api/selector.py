@@ -10,8 +10,16 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.data import EnvPerBatch, as_episodes, collect_episodes, joinable, seed_env
+from torch_api.data import (
+    EnvPerBatch,
+    as_episodes,
+    collect_episodes,
+    collect_with_collector,
+    joinable,
+    seed_env,
+)
 from torch_api.design import build_design
+from torch_api.lstd import lstd_j_values
 from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
@@ -26,6 +34,7 @@ __all__ = [
 ]
 
 PAPER_EPSILON_OFFSETS = (0.0, 0.15, 0.5, 0.85)  # eq. 59: candidates ε_l + offset
+FITS = ("brm", "lstd")  # the paper's least-squares fit on psi_hat, or LSTD-Q (torch_api.lstd)
 _STATE_ACTION_KEYS = (
     "observation",
     "action",
@@ -234,6 +243,14 @@ class SamplingPolicySelector:
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`; for slow
             environments); ``env`` must then be a picklable callable ``batch_size -> env``,
             seeded through :meth:`seed_env`.
+        fit: the learner whose error J estimates: ``"brm"`` (the paper's least-squares fit on
+            psi_hat, :func:`j_values`) or ``"lstd"`` (LSTD-Q, beyond the paper,
+            :func:`~torch_api.lstd.lstd_j_values`).
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (:func:`~torch_api.data.collect_with_collector`): each candidate's ``Z·M``
+            reward-free episodes are then read from it, candidate by candidate, instead of from
+            ``env.rollout`` (the default, faster on batched envs). Without per-trial
+            parameters only.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -263,6 +280,8 @@ class SamplingPolicySelector:
         device: torch.device | str | None = None,
         max_design_bytes: int = 2**29,
         num_workers: int = 0,
+        fit: str = "brm",
+        collector: Callable | None = None,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -287,7 +306,18 @@ class SamplingPolicySelector:
         if num_workers and not self._envs.is_factory:
             raise ValueError("num_workers needs env as a picklable callable batch_size -> env")
         self.num_workers = int(num_workers)
+        if fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        self.fit = fit
+        if collector is not None and num_workers:
+            raise ValueError("give either collector or num_workers, not both")
+        self.collector = collector
+        self.action_encoding = None  # the env's action encoding, where known (else probed)
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
+
+    def close(self) -> None:
+        """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""
+        self._envs.close()
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
@@ -307,7 +337,9 @@ class SamplingPolicySelector:
         ``*T`` are the candidates' trial dims (``param_dims``): rows of the environment batch
         are laid out ``(t, z, k, m)``.
         """
-        if not all(isinstance(c, ActionProbsPolicy) for c in candidates):
+        if self.collector is not None or not all(
+            isinstance(c, ActionProbsPolicy) for c in candidates
+        ):
             return self._collect_each(candidates, iteration)
         trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
         trials = math.prod(trial_dims)
@@ -321,6 +353,7 @@ class SamplingPolicySelector:
             episodes = collect_episodes_in_workers(
                 self._envs.env,
                 stack,
+                action_spec=self.action_encoding,
                 num_episodes=trials * z * k * m,
                 num_steps=n,
                 rewarded=False,
@@ -387,19 +420,29 @@ class SamplingPolicySelector:
                 raise ValueError(
                     "candidates with per-trial parameters cannot be mixed with other policies"
                 )
-        env = self.env_for(z * m)
-        parts = [
-            collect_episodes(
-                env,
-                cand,
-                num_episodes=z * m,
-                num_steps=n,
-                rewarded=False,
-                iteration=iteration,
-                policy_id=i,
-            ).reshape(z, m, n)
-            for i, cand in enumerate(candidates)
-        ]
+        parts = []
+        for i, cand in enumerate(candidates):
+            if self.collector is not None:
+                episodes = collect_with_collector(
+                    self.collector,
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            else:
+                episodes = collect_episodes(
+                    self.env_for(z * m),
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            parts.append(episodes.reshape(z, m, n))
         return torch.stack(joinable(parts), 1)
 
     def _trial_chunks(self, episodes: TensorDictBase, earlier: TensorDictBase | None) -> list:
@@ -418,7 +461,8 @@ class SamplingPolicySelector:
             episodes = episodes.to(self.device)
             earlier = None if earlier is None else earlier.to(self.device)
             policy = policy.to_device(self.device)
-        return j_values(episodes, earlier, policy, self.psi, self.lam).cpu()
+        j = lstd_j_values if self.fit == "lstd" else j_values
+        return j(episodes, earlier, policy, self.psi, self.lam).cpu()
 
     def select(
         self,
