@@ -1,4 +1,4 @@
-"""Reference numbers of the ball-batting task (SPEC section 5).
+"""Reference numbers of the ball-batting task (paper section 5).
 
 1. The reference optimum: the best of all 2^10 = 1024 open-loop action sequences without noise.
 2. A uniformly random policy with the torque noise: the share of episodes in which the bat hits
@@ -9,27 +9,56 @@
 
 from __future__ import annotations
 
-import argparse
-import itertools
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator
-
-ACTION_NAMES = ("cock", "swing")  # action 0 = (50, -35) N m, action 1 = (-50, 10) N m
+from _cli import field, first_line, out_dir_error, parse
 
 
 @dataclass
 class Args:
-    """Command-line arguments."""
+    """Command-line arguments of the reference numbers."""
 
-    episodes: int = 1000  # random-policy episodes (with noise)
-    seed: int = 0  # seed of the noise and of the random actions
-    out: str = "results/batting_reference.json"  # where the JSON summary goes
+    episodes: int = field(1000, low=1)
+    """noisy episodes of the uniformly random policy"""
+    seed: int = 0
+    """seed of the torque noise and of the random actions"""
+    out: str = "results/batting_reference.json"
+    """the JSON file the summary goes to (its folder is created)"""
+
+
+def check(args: Args) -> str | None:
+    return out_dir_error(Path(args.out).parent, flag="--out (its folder)")
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        check=check,
+        unavailable={
+            "trials": "there is no learning here; the random policy's sample is --episodes",
+            "out_dir": "this script writes one file: use --out FILE",
+            "device": "MuJoCo runs on the CPU and there is no algebra to move",
+            "resume": "nothing to resume: it takes seconds",
+            "backend": "everything runs here, the arms batched in MuJoCo's thread pool",
+        },
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import itertools  # noqa: E402
+import json  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator  # noqa: E402
+
+ACTION_NAMES = ("cock", "swing")  # action 0 = (50, -35) N m, action 1 = (-50, 10) N m
 
 
 def reference_optimum() -> dict:
@@ -104,15 +133,6 @@ def main(args: Args) -> dict:
     out.write_text(json.dumps(result, indent=2))
     print(f"wrote {out}")
     return result
-
-
-def parse_args(argv: list[str] | None = None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    defaults = Args()
-    parser.add_argument("--episodes", type=int, default=defaults.episodes)
-    parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--out", default=defaults.out)
-    return Args(**vars(parser.parse_args(argv)))
 
 
 if __name__ == "__main__":

@@ -39,6 +39,13 @@ trial) and ``fig8_performance.png`` (mean ± standard error over trials).
 
     python examples/chain_walk_api.py --trials 1000
 
+Durable runs: every run (chunk) is stored as it goes in ``<out-dir>/checkpoints/<schedule>_<AL
+or PL>[_chunk<c>of<C>].db`` (an SQLite database, ``torch_api/store.py``): the rewarded
+episodes of an iteration are committed before the next are measured. A folder holding runs is
+refused unless ``--resume`` (continue them, buying only what is missing; the results equal an
+uninterrupted run's) or ``--overwrite`` (discard them) is given. SIGINT/SIGTERM finish the
+commit in flight and end with one line (exit 130/143).
+
 Device: ``--device cuda`` runs the whole experiment on the GPU: the batched chain walks, the
 rollouts, psi_hat, J and the solves. The walks' random numbers are drawn on the CPU and moved,
 so a seed gives the same episodes on either device.
@@ -46,22 +53,103 @@ so a seed gives the same episodes on either device.
 
 from __future__ import annotations
 
-import csv
-import dataclasses
-import json
-import math
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
-import matplotlib
+from _cli import (
+    BACKENDS,
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the iterated chain-walk experiment."""
+
+    trials: int = field(1000, low=2, why="(a paired t-test needs two)")
+    """independent trials, all run as one batch (the paper: 1000)"""
+    seed: int = 0
+    """master seed; AL and PL of a schedule share their seeds"""
+    out_dir: str = "results/chain_walk_api"
+    """where the JSON, the CSV, the figure and the stored runs go"""
+    resume: bool = False
+    """continue the runs stored in out_dir (a missing run starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation"""
+    tie_break: str = field("uniform", choices=("uniform", "lowest"))
+    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
+    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'left')"""
+    schedule: str = field("both", choices=("decreasing", "fixed", "both"))
+    """rewarded-episode schedule: decreasing (5,5,3,3,3,1,1), fixed (3 x 7) or both"""
+    iterations: int = field(7, low=1, high=7)
+    """L, iterations run (the schedules' first L entries; 7 in the paper)"""
+    steps: int = field(10, low=1)
+    """N, steps per rewarded episode"""
+    test_episodes: int = field(50, low=1)
+    """test episodes per trial for the performance estimate (eq. 61)"""
+    test_steps: int = field(50, low=1)
+    """steps per test episode (and the horizon of the exact value)"""
+    threads: int = field(0, low=0)
+    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+    backend: str = field("local", choices=BACKENDS)
+    """where the chunks of trials run: local (here, one after another), processes (a pool
+    of local worker processes) or ray"""
+    chunks: int = field(1, low=1)
+    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
+    workers: int = field(0, low=0)
+    """processes backend: worker processes (0: one per CPU core)"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
+    ray_cpus: int = field(0, low=0)
+    """CPUs of a local Ray instance (0: all)"""
+    device: str = "cpu"
+    """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all of it"""
+
+
+def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
+    if args.chunks > args.trials:
+        return f"--chunks must lie in 1..{args.trials} (--trials), got {args.chunks}"
+    return None
+
+
+def parse_args(argv=None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        check=check,
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import csv  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from _cli import dataclass_parser, device_error  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
     CENTERS,
@@ -75,74 +163,16 @@ from envs.chain_walk import (  # noqa: E402
 )
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
-from torch_api.dispatch import BACKENDS, run_chunks, split_trials, trial_seeds  # noqa: E402
+from torch_api.dispatch import run_chunks, split_trials, trial_seeds  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 METHODS = {"AL": "active", "PL": "passive"}
 MEASURES = ("test_return", "exact_return", "percent_optimal")
 PER_TRIAL = (*MEASURES, "chosen", "sampling_rule", "j_mean")  # per-iteration lists over trials
 _ROLE_REWARDED, _ROLE_REWARD_FREE, _ROLE_TEST = 1, 2, 3  # environment seed streams
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the iterated chain-walk experiment."""
-
-    trials: int = 1000
-    """independent trials, all run as one batch (the paper: 1000)"""
-    seed: int = 0
-    """master seed; AL and PL of a schedule share their seeds"""
-    out_dir: str = "results/chain_walk_api"
-    """where the JSON, the CSV and the figure go"""
-    repeats: int = 5
-    """Z, J-values averaged into J'"""
-    lam: float = 1e-3
-    """λ, ridge regularisation"""
-    schedule: str = "both"
-    """'decreasing', 'fixed' or 'both'"""
-    iterations: int = 7
-    """L, iterations run (the schedules' first L entries; 7 in the paper)"""
-    steps: int = 10
-    """N, steps per rewarded episode"""
-    test_episodes: int = 50
-    """test episodes per trial for the performance estimate (eq. 61)"""
-    test_steps: int = 50
-    """steps per test episode (and the horizon of the exact value)"""
-    threads: int = 0
-    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
-    backend: str = "local"
-    """where the chunks of trials run: 'local' (here, one after another), 'processes' (a pool
-    of local worker processes) or 'ray'"""
-    chunks: int = 1
-    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
-    workers: int = 0
-    """processes backend: worker processes (0: one per CPU core)"""
-    ray_address: str = ""
-    """Ray cluster to join (e.g. 'auto'); '' starts a local Ray instance"""
-    ray_cpus: int = 0
-    """CPUs of a local Ray instance (0: all)"""
-    device: str = "cpu"
-    """where the chain walks, the rollouts and the algebra run (cpu or cuda): all of it"""
-
-
-def parse_args(argv=None) -> Args:
-    parser = dataclass_parser(Args, __doc__.split("\n")[0])
-    args = Args(**vars(parser.parse_args(argv)))
-    if args.schedule not in (*SCHEDULES, "both"):
-        raise ValueError(f"--schedule must be one of {(*SCHEDULES, 'both')}, got {args.schedule}")
-    if not 1 <= args.iterations <= 7:
-        raise ValueError(f"--iterations must lie in 1 … 7, got {args.iterations}")
-    if args.trials < 2:
-        raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
-    if args.backend not in BACKENDS:
-        raise ValueError(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
-    if not 1 <= args.chunks <= args.trials:
-        raise ValueError(f"--chunks must lie in 1 … --trials = {args.trials}, got {args.chunks}")
-    if (why := device_error(args.device)) is not None:
-        raise ValueError(why)
-    return args
 
 
 def derived_seed(*parts: int) -> int:
@@ -204,7 +234,15 @@ class Chunk:
     run_seed: int
     trials: list[int]
     """indices t of the run's trials in this chunk"""
+    store: Path
+    """where the chunk's run is stored"""
     progress: bool = True
+
+
+def store_name(schedule: str, method: str, chunk: int, chunks: int) -> str:
+    """``<schedule>_<method>.db``, or ``..._chunk<c>of<C>.db`` (c = 1 … C) if C > 1."""
+    suffix = "" if chunks == 1 else f"_chunk{chunk + 1}of{chunks}"
+    return f"{schedule}_{method}{suffix}.db"
 
 
 def run_chunk(chunk: Chunk) -> dict:
@@ -223,14 +261,22 @@ def run_chunk(chunk: Chunk) -> dict:
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="grouped",
+        tie_break=args.tie_break,
         evaluate=evaluate,
         num_trials=len(chunk.trials),
         seed=run_seed,
         trial_seeds=trial_seeds(run_seed, chunk.trials),  # trial t's seed: (run seed, t) only
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
+        checkpoint_path=chunk.store,
+        resume=args.resume,
+        overwrite=args.overwrite,
     )
-    first = LinearQPolicy(basis=basis, theta=api.policy.theta, epsilon=api.policy.epsilon)
+    if api.resumed:
+        print(f"resumed {chunk.store} at iteration {api.iteration}/{len(chunk.schedule)}")
+    elif args.resume:
+        print(f"nothing stored in {chunk.store}: starting it fresh")
+    first = api.initial_policy()  # pi_1, with streams of its own below
     first.block_generators = [
         torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
     ]
@@ -269,17 +315,21 @@ def mean_se(values) -> tuple[float, float]:
 
 
 def paired_tests(runs: dict) -> dict:
-    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure."""
+    """Two-tailed paired t-test of AL vs PL at the last iteration, on each measure.
+
+    ``t`` and ``p`` are None where the test is undefined: every pair identical (AL chose pi_l
+    itself in every iteration of every trial, so the paired runs bought the same episodes).
+    """
     al, pl = runs["AL"]["iterations"][-1], runs["PL"]["iterations"][-1]
     out = {}
     for measure in ("test_return", "exact_return"):
         a, p = np.asarray(al[measure]), np.asarray(pl[measure])
-        test = scipy.stats.ttest_rel(a, p)
+        test = None if np.all(a - p == (a - p)[0]) else scipy.stats.ttest_rel(a, p)
         out[measure] = {
             "iteration": al["iteration"],
             "mean_difference": float((a - p).mean()),
-            "t": float(test.statistic),
-            "p": float(test.pvalue),
+            "t": None if test is None else float(test.statistic),
+            "p": None if test is None else float(test.pvalue),
             "al_better_share": float((a > p).mean()),
             "al_worse_share": float((a < p).mean()),
         }
@@ -385,9 +435,10 @@ def print_table(results: dict, args: Args, wall: float) -> None:
     )
     for name, res in results.items():
         for measure, t in res["t_tests"].items():
+            stat = "undefined" if t["t"] is None else f"{t['t']:8.3f} {t['p']:10.3g}"
             print(
-                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {t['t']:8.3f} "
-                f"{t['p']:10.3g} {t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
+                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {stat:>19} "
+                f"{t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
             )
 
 
@@ -398,8 +449,26 @@ def main(argv=None) -> dict:
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    started = time.perf_counter()
     jobs = [(name, method) for name in names for method in METHODS]
+    stores = [
+        out / "checkpoints" / store_name(name, method, c, args.chunks)
+        for name, method in jobs
+        for c in range(args.chunks)
+    ]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out, names, jobs)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path, names: list[str], jobs: list[tuple[str, str]]) -> dict:
+    """Every run (chunks where asked), then the table, the files and the figure."""
+    started = time.perf_counter()
     chunks = [
         Chunk(
             args=args,
@@ -407,10 +476,11 @@ def main(argv=None) -> dict:
             mode=METHODS[method],
             run_seed=1000 * args.seed + 100 * list(SCHEDULES).index(name),  # AL, PL: paired
             trials=list(trials),
+            store=out / "checkpoints" / store_name(name, method, c, args.chunks),
             progress=args.backend == "local",
         )
         for name, method in jobs
-        for trials in split_trials(args.trials, args.chunks)
+        for c, trials in enumerate(split_trials(args.trials, args.chunks))
     ]
     print(f"{len(chunks)} chunks of about {args.trials // args.chunks} trials ({args.backend})")
     parts = run_chunks(

@@ -19,20 +19,64 @@ moved, so a seed gives the same episodes on either device).
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
-import matplotlib
+from _cli import field, first_line, parse
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the one-step experiment."""
+
+    trials: int = field(100, low=1)
+    """independent trials (the paper: 100)"""
+    episodes: int = field(10, low=1)
+    """M, episodes per data set"""
+    steps: int = field(10, low=1)
+    """N, steps per episode"""
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    candidates: int = field(10, low=2)
+    """K, candidate k samples with ε = k / K"""
+    eval_epsilon: float = field(0.1, low=0.0, high=1.0)
+    """ε of the evaluation policies"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation (> 0)"""
+    seed: int = 0
+    """seed of the environment and the policies"""
+    out_dir: str = "results/chain_walk_one_step"
+    """where the JSON and the figures go"""
+    device: str = "cpu"
+    """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N)"""
+
+
+def parse_args(argv=None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        unavailable={
+            "resume": "a run takes seconds and buys no expensive rewards; rerun it",
+            "backend": "all trials run as one batch in this process",
+        },
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from _cli import dataclass_parser, device_error  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from envs.chain_walk import (  # noqa: E402
@@ -54,40 +98,6 @@ from torch_api.selector import j_values  # noqa: E402
 from torch_api.solve import weighted_ridge  # noqa: E402
 
 BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # eq. 51-53, 10-letter readings
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the one-step experiment."""
-
-    trials: int = 100
-    """independent trials (the paper: 100)"""
-    episodes: int = 10
-    """M, episodes per data set"""
-    steps: int = 10
-    """N, steps per episode"""
-    repeats: int = 5
-    """Z, J-values averaged into J'"""
-    candidates: int = 10
-    """K, candidate k samples with ε = k / K"""
-    eval_epsilon: float = 0.1
-    """ε of the evaluation policies"""
-    lam: float = 1e-3
-    """λ, ridge regularisation"""
-    seed: int = 0
-    """seed of the environment and the policies"""
-    out_dir: str = "results/chain_walk_one_step"
-    """where the JSON and the figures go"""
-    device: str = "cpu"
-    """where the chain walks, the rollouts and the algebra run (cpu or cuda)"""
-
-
-def parse_args(argv=None) -> Args:
-    parser = dataclass_parser(Args, __doc__.split("\n")[0])
-    args = Args(**vars(parser.parse_args(argv)))
-    if (why := device_error(args.device)) is not None:
-        parser.error(why)
-    return args
 
 
 def state_index(obs: torch.Tensor) -> torch.Tensor:

@@ -35,28 +35,124 @@ CartPoles. The policies' per-trial streams travel with the trials, but each work
 are seeded on their own, so the numbers are an equally valid sample, not those of one process.
 
     python examples/gym_drop_in.py --reward-free-workers 2
+
+Durable runs: AL and PL are stored as they go in ``<out-dir>/checkpoints/{active,passive}.db``
+(``torch_api/store.py``): the rewarded episodes of an iteration are committed before the next
+are measured. A folder holding runs is refused unless ``--resume`` (continue them, buying only
+what is missing) or ``--overwrite`` (discard them) is given; SIGINT/SIGTERM finish the commit in
+flight and end with one line (exit 130/143).
 """
 
 from __future__ import annotations
 
-import csv
-import dataclasses
-import itertools
-import json
-import math
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
-import gymnasium as gym
-import matplotlib
+from _cli import (
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the CartPole drop-in demo."""
+
+    trials: int = field(8, low=2, why="(a paired t-test needs two)")
+    """independent trials, all run as one batch"""
+    seed: int = 0
+    """run seed (shared by AL and PL: a paired design)"""
+    out_dir: str = "results/gym_drop_in"
+    """where the JSON, the CSV, the figure and the stored runs go"""
+    resume: bool = False
+    """continue the runs stored in out_dir (a missing run starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
+    schedule: str = "10,10,6,6,6,2,2"
+    """rewarded episodes per iteration, comma-separated (its length is L)"""
+    iterations: int = field(0, low=0)
+    """run only the first L iterations of the schedule (0: all)"""
+    steps: int = field(25, low=1)
+    """N, steps per episode (an episode may end earlier when the pole falls)"""
+    gamma: float = field(0.95, above=0.0, high=1.0)
+    """discount γ, in (0, 1]"""
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation"""
+    grid: float = field(0.5, above=0)
+    """Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin"""
+    tau: float = field(0.75, above=0)
+    """Gaussian kernel width τ in normalised units"""
+    test_episodes: int = field(20, low=1)
+    """test episodes per trial and iteration"""
+    test_steps: int = field(200, low=1)
+    """longest test episode (steps)"""
+    threads: int = field(0, low=0)
+    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+    reward_free_workers: int = field(0, low=0)
+    """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
+    MultiSyncCollector; each steps its share of the CartPoles)"""
+
+
+def schedule_of(args: Args) -> tuple[int, ...]:
+    """M_l of the iterations run: ``--schedule``, cut to ``--iterations`` if given."""
+    schedule = tuple(int(m) for m in args.schedule.split(","))
+    return schedule[: args.iterations] if args.iterations else schedule
+
+
+def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
+    try:
+        schedule = tuple(int(m) for m in args.schedule.split(","))
+    except ValueError:
+        schedule = ()
+    if not schedule or min(schedule) < 1:
+        return f"--schedule must be episode counts >= 1 separated by commas, got {args.schedule!r}"
+    if args.iterations > len(schedule):
+        return f"--iterations must lie in 0..{len(schedule)} (the schedule), got {args.iterations}"
+    return None
+
+
+def parse_args(argv=None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        check=check,
+        unavailable={
+            "device": "CartPole steps in Python on the CPU (Gymnasium); the algebra is small",
+            "backend": "all trials run as one batch here (--reward-free-workers spreads the "
+            "reward-free collection over processes)",
+        },
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import csv  # noqa: E402
+import dataclasses  # noqa: E402
+import itertools  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import gymnasium as gym  # noqa: E402
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
-from _cli import dataclass_parser  # noqa: E402
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -64,65 +160,12 @@ from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 ENV_ID = "CartPole-v1"
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
 X_LIMIT, ANGLE_LIMIT = 2.4, 12 * 2 * math.pi / 360  # CartPole's termination limits (m, rad)
 METHODS = {"AL": "active", "PL": "passive"}
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the CartPole drop-in demo."""
-
-    trials: int = 8
-    """independent trials, all run as one batch"""
-    seed: int = 0
-    """run seed (shared by AL and PL: a paired design)"""
-    out_dir: str = "results/gym_drop_in"
-    """where the JSON, the CSV and the figure go"""
-    schedule: str = "10,10,6,6,6,2,2"
-    """rewarded episodes per iteration, comma-separated (its length is L)"""
-    iterations: int = 0
-    """run only the first L iterations of the schedule (0: all)"""
-    steps: int = 25
-    """N, steps per episode (an episode may end earlier when the pole falls)"""
-    gamma: float = 0.95
-    """discount γ"""
-    repeats: int = 5
-    """Z, J-values averaged into J'"""
-    lam: float = 1e-3
-    """λ, ridge regularisation"""
-    grid: float = 0.5
-    """Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin"""
-    tau: float = 0.75
-    """Gaussian kernel width τ in normalised units"""
-    test_episodes: int = 20
-    """test episodes per trial and iteration"""
-    test_steps: int = 200
-    """longest test episode (steps)"""
-    threads: int = 0
-    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
-    reward_free_workers: int = 0
-    """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
-    MultiSyncCollector; each steps its share of the CartPoles)"""
-
-
-def parse_args(argv=None) -> Args:
-    parser = dataclass_parser(Args, __doc__.split("\n")[0])
-    args = Args(**vars(parser.parse_args(argv)))
-    if args.trials < 2:
-        raise ValueError(f"--trials must be >= 2 (paired t-test), got {args.trials}")
-    return args
-
-
-def schedule_of(args: Args) -> tuple[int, ...]:
-    schedule = tuple(int(m) for m in args.schedule.split(","))
-    if args.iterations:
-        if not 1 <= args.iterations <= len(schedule):
-            raise ValueError(f"--iterations must lie in 1 … {len(schedule)}, got {args.iterations}")
-        schedule = schedule[: args.iterations]
-    return schedule
 
 
 def make_env(batch: int) -> TransformedEnv:
@@ -184,7 +227,11 @@ def make_evaluator(args: Args):
 
     def balanced(policy: LinearQPolicy, epsilon) -> torch.Tensor:
         tester = LinearQPolicy(
-            basis=policy.basis, theta=policy.theta, epsilon=epsilon, generator=generator
+            basis=policy.basis,
+            theta=policy.theta,
+            epsilon=epsilon,
+            tie_break=policy.tie_break,
+            generator=generator,
         )
         episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
         return (episodes[REWARD_KEY] * episodes["mask"]).sum(-1).double().mean(-1)  # [T]
@@ -201,8 +248,13 @@ def make_evaluator(args: Args):
     return evaluate
 
 
+def store_of(args: Args, mode: str) -> Path:
+    """Where the run of one mode is stored."""
+    return Path(args.out_dir) / "checkpoints" / f"{mode}.db"
+
+
 def run_method(args: Args, mode: str) -> tuple[dict, dict]:
-    """One batched run of Algorithm 1 (all trials)."""
+    """One batched run of Algorithm 1 (all trials), stored as it goes."""
     evaluate = make_evaluator(args)
     api = ActivePolicyIteration(
         env=make_env,
@@ -220,8 +272,15 @@ def run_method(args: Args, mode: str) -> tuple[dict, dict]:
         num_trials=args.trials,
         seed=args.seed,
         keep_reward_free=False,
+        checkpoint_path=store_of(args, mode),
+        resume=args.resume,
+        overwrite=args.overwrite,
     )
-    initial = evaluate(api.policy, args.seed + 1)
+    if api.resumed:
+        print(f"resumed {store_of(args, mode)} at iteration {api.iteration}/{len(api.schedule)}")
+    elif args.resume:
+        print(f"nothing stored in {store_of(args, mode)}: starting it fresh")
+    initial = evaluate(api.initial_policy(), args.seed + 1)
     started = time.perf_counter()
     history = api.run(progress=True)
     seconds = time.perf_counter() - started
@@ -304,6 +363,20 @@ def main(argv=None) -> dict:
         torch.set_num_threads(args.threads)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    stores = [store_of(args, mode) for mode in METHODS.values()]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path) -> dict:
+    """Both runs, then the table, the files and the figure."""
     started = time.perf_counter()
     runs, checks = {}, {}
     for method, mode in tqdm(METHODS.items(), desc="method"):

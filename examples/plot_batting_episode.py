@@ -10,11 +10,53 @@ on the bat, and its closed-form flight to the ground, from the simulated positio
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
+from _cli import field, first_line, out_dir_error, parse
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the episode picture."""
+
+    sequence: str = "0100011110"
+    """the actions, one digit per control step (0 cock, 1 swing), e.g. 0011111000"""
+    out: str = "results/batting_episode.png"
+    """the PNG file (its folder is created)"""
+    snapshot_ms: float = field(7.5, above=0)
+    """simulated time between two drawn arm snapshots (ms)"""
+
+
+def check(args: Args) -> str | None:
+    if not args.sequence or set(args.sequence) - {"0", "1"}:
+        return f"--sequence must be digits 0 and 1, got {args.sequence!r}"
+    if len(args.sequence) > 10:
+        return f"--sequence must have at most 10 actions (N = 10), got {len(args.sequence)}"
+    return out_dir_error(Path(args.out).parent, flag="--out (its folder)")
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        check=check,
+        unavailable={
+            "trials": "it draws one noiseless episode",
+            "seed": "the episode is noiseless: nothing is random",
+            "out_dir": "this script writes one file: use --out FILE",
+            "device": "MuJoCo runs on the CPU",
+            "resume": "nothing to resume: it takes seconds",
+            "backend": "one episode runs here",
+        },
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -22,15 +64,6 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.batting import ACTION_TORQUES, CONTROL_DT, BattingSimulator  # noqa: E402
-
-
-@dataclass
-class Args:
-    """Command-line arguments."""
-
-    sequence: str = "0100011110"  # actions, one digit per control step (0 cock, 1 swing)
-    out: str = "results/batting_episode.png"  # PNG path
-    snapshot_ms: float = 7.5  # time between drawn arm snapshots (ms)
 
 
 def simulate(sequence: str) -> tuple[list[np.ndarray], list[float], BattingSimulator]:
@@ -60,8 +93,6 @@ def arm_points(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
 
 
 def main(args: Args) -> Path:
-    if len(args.sequence) == 0 or set(args.sequence) - {"0", "1"}:
-        raise ValueError(f"sequence must be digits 0/1, got {args.sequence!r}")
     qpos, times, sim = simulate(args.sequence)
     model = sim.coarse_model
     fig, (ax, ax_zoom) = plt.subplots(
@@ -133,15 +164,6 @@ def main(args: Args) -> Path:
     plt.close(fig)
     print(f"{title}\nwrote {out}")
     return out
-
-
-def parse_args(argv: list[str] | None = None) -> Args:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    defaults = Args()
-    parser.add_argument("--sequence", default=defaults.sequence)
-    parser.add_argument("--out", default=defaults.out)
-    parser.add_argument("--snapshot-ms", type=float, default=defaults.snapshot_ms)
-    return Args(**vars(parser.parse_args(argv)))
 
 
 if __name__ == "__main__":

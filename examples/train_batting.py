@@ -38,43 +38,135 @@ seeded from the chunk: an equally valid sample, but not the same numbers.)
 
     python examples/train_batting.py --trials 500 --schedule both --backend ray --chunks 16
 
-Rewarded episodes are expensive, so every run is checkpointed after each batch of rewarded
-episodes and after each iteration (``<out-dir>/checkpoints/<schedule>_<mode>.pt``, with
-``_chunk<c>of<C>`` before ``.pt`` when chunked). After an interruption, the same command with
-``--resume`` continues every run from its checkpoint without buying its rewarded episodes again;
+Rewarded episodes are expensive, so every run is stored as it goes
+(``<out-dir>/checkpoints/<schedule>_<mode>.db``, with ``_chunk<c>of<C>`` before ``.db`` when
+chunked; an SQLite database, see ``torch_api/store.py``): each batch of rewarded episodes is
+committed before the next is measured, and every iteration's result after it. A folder that
+holds runs already is refused unless ``--resume`` (continue them) or ``--overwrite`` (discard
+them) is given. SIGINT/SIGTERM (Ctrl-C) finish the commit in flight and end with one line naming
+what is stored (exit 130/143). After an interruption or a kill, the same command with
+``--resume`` continues every run from its store without buying its rewarded episodes again;
 completed runs are not recomputed. Physics is MuJoCo on the CPU; ``--device cuda`` moves the
 algebra (psi_hat, J, the solves) to the GPU.
 
 Testing aid: ``--stop-after-checkpoints K`` ends the process abruptly (``os._exit(3)``, no
-cleanup) right after the K-th checkpoint of this invocation is written, to simulate an
-interruption (from a fresh start, odd K stops just after rewarded episodes were bought, even K
-after an iteration).
+cleanup) right after the K-th commit of this invocation, to simulate an interruption (a run
+commits its selection, then its rewarded episodes, then the iteration's result: from a fresh
+start, K = 2 stops just after the first rewarded episodes were bought).
 
-Note: θ_0 = 1 gives both actions the same Q̂_0, the tie goes to action 0 (cock the arm), so pi_1
-cocks with probability 0.925 per step and hits the ball in about 0.1 % of episodes (ε = 0.3: about
-1.4 %). Many PL trials therefore never see a reward, θ stays 0 and their performance stays 0.
+Ties: θ_0 = 1 gives both actions the same Q̂_0, and so does θ = 0 (a run that has seen no
+reward yet). By default (``--tie-break uniform``) tied actions share the greedy mass equally, so
+pi_1 is uniformly random (it hits the ball in about half of its episodes). With ``--tie-break
+lowest`` the tie goes to action 0 (cock the arm): pi_1 cocks with probability 0.925 per step and
+hits the ball in about 0.1 % of episodes, and a PL trial that sees no reward keeps θ = 0 and that
+policy for ever.
 """
 
 from __future__ import annotations
 
-import csv
-import dataclasses
-import json
-import logging
-import math
-import os
-import time
-import zlib
 from dataclasses import dataclass
-from pathlib import Path
 
-import matplotlib
+from _cli import (
+    BACKENDS,
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
+
+
+@dataclass
+class Args:
+    """Command-line arguments of the batting experiment."""
+
+    trials: int = field(8, low=1)
+    """T, independent trials, all run as one batch (the paper: 500)"""
+    schedule: str = field("decreasing", choices=("decreasing", "fixed", "both"))
+    """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
+    iterations: int = field(7, low=1, high=7)
+    """how many of the schedule's L = 7 iterations to run"""
+    episodes: int = field(0, low=0)
+    """if > 0, M_l of every iteration (replaces the schedule's numbers)"""
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation"""
+    tie_break: str = field("uniform", choices=("uniform", "lowest"))
+    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
+    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'cock')"""
+    seed: int = 0
+    """seed of the runs (AL and PL share it: paired rewarded and test environments)"""
+    device: str = "cpu"
+    """where the algebra runs (cpu, cuda or cuda:N); physics is MuJoCo on the CPU"""
+    out_dir: str = "results/train_batting"
+    """where the JSON, CSV, figure and checkpoints go"""
+    resume: bool = False
+    """continue every run stored in out_dir; completed runs are not recomputed (a missing run
+    starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
+    stop_after_checkpoints: int = field(0, low=0)
+    """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
+    backend: str = field("local", choices=BACKENDS)
+    """where the chunks of trials run: local (here, one after another), processes (a pool of
+    local worker processes) or ray"""
+    chunks: int = field(1, low=1)
+    """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
+    workers: int = field(0, low=0)
+    """processes backend: worker processes (0: one per CPU core)"""
+    physics_audit: float = field(0.0, low=0.0, high=1.0)
+    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
+    physics steps are counted either way"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
+    ray_cpus: int = field(0, low=0)
+    """CPUs of a local Ray instance (0: all)"""
+
+
+def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
+    if args.chunks > args.trials:
+        return f"--chunks must lie in 1..{args.trials} (--trials), got {args.chunks}"
+    if args.backend != "local" and args.stop_after_checkpoints:
+        return "--stop-after-checkpoints is a testing aid of --backend local"
+    return None
+
+
+def parse_args(argv=None) -> Args:
+    return parse(
+        Args,
+        argv,
+        description=first_line(__doc__),
+        epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
+        "cores). The paper's run: --trials 500 --schedule both",
+        check=check,
+    )
+
+
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before the heavy imports below
+
+import csv  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+import time  # noqa: E402
+import zlib  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
-from _cli import dataclass_parser, device_error  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
@@ -87,7 +179,6 @@ from envs.batting import (  # noqa: E402
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import (  # noqa: E402
-    BACKENDS,
     run_chunks,
     split_trials,
     threads_per_worker,
@@ -95,81 +186,13 @@ from torch_api.dispatch import (  # noqa: E402
 )
 from torch_api.iteration import ActivePolicyIteration, derive_seed  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 MODES = {"active": "AL", "passive": "PL"}
 PER_TRIAL = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")  # [L][T] lists
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the batting experiment."""
-
-    trials: int = 8
-    """T, independent trials, all run as one batch (the paper: 500)"""
-    schedule: str = "decreasing"
-    """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
-    iterations: int = 7
-    """how many of the schedule's L = 7 iterations to run"""
-    episodes: int = 0
-    """if > 0, M_l of every iteration (replaces the schedule's numbers)"""
-    repeats: int = 5
-    """Z, J-values averaged into J'"""
-    lam: float = 1e-3
-    """λ, ridge regularisation"""
-    seed: int = 0
-    """seed of the runs (AL and PL share it: paired rewarded and test environments)"""
-    device: str = "cpu"
-    """where the algebra runs (cpu or cuda); physics is MuJoCo on the CPU"""
-    out_dir: str = "results/train_batting"
-    """where the JSON, CSV, figure and checkpoints go"""
-    resume: bool = False
-    """continue every run from its checkpoint in out_dir; completed runs are not recomputed"""
-    stop_after_checkpoints: int = 0
-    """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
-    backend: str = "local"
-    """where the chunks of trials run: local (here, one after another), processes (a pool of
-    local worker processes) or ray"""
-    chunks: int = 1
-    """C, chunks of trials per schedule and mode (each one batched run; results concatenated)"""
-    workers: int = 0
-    """processes backend: worker processes (0: one per CPU core)"""
-    physics_audit: float = 0.0
-    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
-    physics steps are counted either way"""
-    ray_address: str = ""
-    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
-    ray_cpus: int = 0
-    """CPUs of a local Ray instance (0: all)"""
-
-
-def parse_args(argv=None) -> Args:
-    parser = dataclass_parser(
-        Args,
-        __doc__.split("\n")[0],
-        epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
-        "cores). The paper's run: --trials 500 --schedule both",
-    )
-    args = Args(**vars(parser.parse_args(argv)))
-    if args.schedule not in (*SCHEDULES, "both"):
-        parser.error(f"--schedule must be decreasing, fixed or both, got {args.schedule!r}")
-    if not 1 <= args.iterations <= 7:
-        parser.error(f"--iterations must lie in 1..7, got {args.iterations}")
-    if args.trials < 1 or args.repeats < 1 or args.episodes < 0 or args.workers < 0:
-        parser.error("--trials and --repeats must be >= 1, --episodes and --workers >= 0")
-    if not 0.0 <= args.physics_audit <= 1.0:
-        parser.error(f"--physics-audit must lie in [0, 1], got {args.physics_audit}")
-    if args.backend not in BACKENDS:
-        parser.error(f"--backend must be one of {BACKENDS}, got {args.backend!r}")
-    if not 1 <= args.chunks <= args.trials:
-        parser.error(f"--chunks must lie in 1..--trials = {args.trials}, got {args.chunks}")
-    if (why := device_error(args.device)) is not None:
-        parser.error(why)
-    if args.backend != "local" and args.stop_after_checkpoints:
-        parser.error("--stop-after-checkpoints is a testing aid of --backend local")
-    return args
 
 
 def schedule_of(args: Args, name: str) -> list[int]:
@@ -217,7 +240,7 @@ class TestPerformance:
 
 
 class CheckpointCounter:
-    """Counts checkpoints written in this process; with a limit, ends it abruptly (testing aid)."""
+    """Counts commits made in this process; with a limit, ends it abruptly (testing aid)."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -231,12 +254,11 @@ class CheckpointCounter:
 
 
 class InterruptibleRun(ActivePolicyIteration):
-    """ActivePolicyIteration that reports every checkpoint it writes to a counter."""
+    """ActivePolicyIteration that reports every commit to its store to a counter."""
 
     counter: CheckpointCounter | None = None
 
-    def save(self, path) -> None:
-        super().save(path)
+    def _on_commit(self) -> None:
         if self.counter is not None:
             self.counter.saved()
 
@@ -258,9 +280,9 @@ class Chunk:
 
 
 def checkpoint_name(schedule: str, mode: str, chunk: int, chunks: int) -> str:
-    """``<schedule>_<mode>.pt``, or ``<schedule>_<mode>_chunk<c>of<C>.pt`` (c = 1 … C) if C > 1."""
+    """``<schedule>_<mode>.db``, or ``<schedule>_<mode>_chunk<c>of<C>.db`` (c = 1 … C) if C > 1."""
     suffix = "" if chunks == 1 else f"_chunk{chunk + 1}of{chunks}"
-    return f"{schedule}_{mode}{suffix}.pt"
+    return f"{schedule}_{mode}{suffix}.db"
 
 
 def chunk_seed(seed: int, first_trial: int) -> int:
@@ -298,12 +320,15 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
+        tie_break=args.tie_break,
         evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),
         seed=seed,
         trial_seeds=trial_seeds(args.seed, chunk.trials),
         keep_reward_free=False,  # not needed later; keeps checkpoints small
         checkpoint_path=chunk.checkpoint,
+        resume=args.resume,
+        overwrite=args.overwrite,
         device=args.device,
     )
     api.counter = chunk.counter
@@ -318,10 +343,11 @@ def run_chunk(chunk: Chunk) -> dict:
     audit_seed = int(np.random.SeedSequence([chunk.args.seed, name_key]).generate_state(1)[0])
     audit = PhysicsAudit(chunk.args.physics_audit, seed=audit_seed)
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # also in worker processes
-    api = make_run(chunk, audit)
-    if chunk.args.resume and chunk.checkpoint.exists():
-        api.load(chunk.checkpoint)
+    api = make_run(chunk, audit)  # opens (and locks) the run's store, checked writable
+    if api.resumed:
         print(f"resumed {chunk.checkpoint} at iteration {api.iteration}/{len(chunk.schedule)}")
+    elif chunk.args.resume:
+        print(f"nothing stored in {chunk.checkpoint}: starting it fresh")
     api.run(progress=chunk.progress)
     return summarise(api.history, chunk.mode) | {"physics": audit}
 
@@ -368,7 +394,7 @@ def mean_se(values) -> tuple[float, float]:
 def paired_test(al, pl) -> dict:
     """Two-tailed paired t-test of AL vs PL performance (None when undefined)."""
     al, pl = np.asarray(al, dtype=np.float64), np.asarray(pl, dtype=np.float64)
-    if len(al) < 2 or np.all(al == pl):
+    if len(al) < 2 or np.all(al - pl == (al - pl)[0]):  # no spread in the differences
         return {"t": None, "p": None}
     res = scipy.stats.ttest_rel(al, pl)
     return {"t": float(res.statistic), "p": float(res.pvalue)}
@@ -457,10 +483,28 @@ def main(argv=None) -> dict:
     ckpt_dir = out / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    counter = CheckpointCounter(args.stop_after_checkpoints)
-    started = time.perf_counter()
     jobs = [(name, mode) for name in names for mode in MODES]
     pieces = split_trials(args.trials, args.chunks)
+    stores = [
+        ckpt_dir / checkpoint_name(name, mode, c, args.chunks)
+        for name, mode in jobs
+        for c in range(len(pieces))
+    ]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out, ckpt_dir, names, jobs, pieces)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, ckpt_dir)
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path, ckpt_dir: Path, names, jobs, pieces) -> dict:
+    """Every run of the experiment (chunks where asked), then the tables, files and figure."""
+    counter = CheckpointCounter(args.stop_after_checkpoints)
+    started = time.perf_counter()
     # MuJoCo threads per chunk: every core in-process, the cores shared out among processes,
     # one per Ray task (Ray gives each task one CPU)
     physics_threads = {"local": None, "ray": 1}.get(

@@ -25,6 +25,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
             "| slow chain walk (500 µs per row-step) | 4 |",
         ),
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
+        (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):

@@ -511,8 +511,9 @@ def test_env_fault_while_buying_keeps_earlier_rewards_and_names_the_failure(tmp_
         ({"num_steps": 2.5}, "num_steps must be an integer"),
         ({"schedule": (2.7, 1.9)}, "integer episode counts"),
         ({"schedule": (True, 2)}, "integer episode counts"),
-        ({"lam": math.nan}, "lam must be a finite number"),
-        ({"lam": math.inf}, "lam must be a finite number"),
+        ({"lam": math.nan}, "lam must be > 0, got nan"),
+        ({"lam": math.inf}, "lam must be finite, got inf"),
+        ({"knn_k": 2.5}, "knn_k must be an integer"),
     ],
 )
 def test_non_integer_counts_and_bad_lambda_are_refused(kwargs, match):
@@ -523,3 +524,42 @@ def test_non_integer_counts_and_bad_lambda_are_refused(kwargs, match):
 def test_a_huge_lambda_warns():
     with pytest.warns(RuntimeWarning, match="lam = 1e\\+308 is huge"):
         _api(lam=1e308)
+
+
+def test_nan_sampling_probabilities_are_refused():
+    from torch_api.data import EpisodeBuffer, collect_episodes
+    from torch_api.policies import LinearQPolicy
+
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    policy = LinearQPolicy(basis=basis, theta=torch.ones(basis.num_features), epsilon=0.1)
+    episodes = collect_episodes(
+        ChainWalkEnv(batch_size=2, seed=0), policy, num_episodes=2, num_steps=3, rewarded=True
+    )
+    probs = episodes["sample_probs"].clone()
+    probs[0, 1] = torch.tensor([math.nan, 1.0], dtype=torch.float64)  # [nan, 1]
+    episodes["sample_probs"] = probs
+    with pytest.raises(ValueError, match="sample_probs rows must be probabilities"):
+        EpisodeBuffer(rewarded=True, capacity=4).extend(episodes)
+
+
+def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
+    """Even with a matching checksum (anyone who can write the file can compute one), a row
+    holding a pickle is refused by the decoder and its code never runs."""
+    from torch_api.store import _digest
+
+    mark = tmp_path / "mark"
+    monkeypatch.setenv("PAYLOAD_MARK", str(mark))
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    blob = pickle.dumps(_Payload())
+    _tamper(
+        path,
+        "UPDATE episode SET value = ?, digest = ? WHERE iteration = 1 AND episode = 0",
+        blob,
+        _digest("episode", (1, 0), blob),
+    )
+    with pytest.raises(CorruptRunError, match=str(path)) as info:
+        _api().load(path)
+    assert "weights_only" not in str(info.value)
+    assert not mark.exists()

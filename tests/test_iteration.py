@@ -221,3 +221,51 @@ def test_softmax_improvement_runs_with_softmax_candidates():
     assert api.policy.beta == 0.5 and api.policy.epsilon is None
     assert all(rule in (0.5, 1.0, 2.5, 10.0) for r in history for rule in r.sampling_rule)
     assert len(api.reward_free) == 2 * 4 * (3 + 2)  # Z · K · Σ M_l episodes per trial
+
+
+@pytest.mark.parametrize("tie_break", ["uniform", "lowest"])
+def test_passive_run_whose_first_rewards_are_all_zero_still_explores(tie_break):
+    """No reward seen: θ_1 = 0, every action ties. Split evenly, pi_2 is uniform and the next
+    bought episodes try both actions; to the lowest index, PL would cock (go left) for ever."""
+    api = ActivePolicyIteration(
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11, reward_profile=[0.0] * 10),
+        basis=_basis(),
+        schedule=(3, 40),
+        num_steps=N,
+        gamma=GAMMA,
+        mode="passive",
+        psi_mode="grouped",
+        num_trials=2,
+        tie_break=tie_break,
+    )
+    api.step()
+    assert torch.equal(api.theta, torch.zeros_like(api.theta))
+    states = torch.arange(1, 11, dtype=torch.float32)[:, None].expand(2, 10, 1)
+    probs = api.policy.action_probs(states)
+    api.step()
+    right = (api.rewarded.episodes()["action"][:, 3:] == 1).double().mean().item()
+    if tie_break == "uniform":
+        torch.testing.assert_close(probs, torch.full((2, 10, 2), 0.5, dtype=torch.float64))
+        assert 0.4 < right < 0.6  # 800 draws of a fair coin: 5.7 standard errors
+    else:
+        assert probs[..., 1].eq(0.075 / 2).all()  # ε_2 = 0.075: right only by exploration
+        assert right < 0.1
+
+
+@pytest.mark.parametrize("num_trials", [None, 3])
+def test_rewarded_draws_do_not_depend_on_reward_free_collection(num_trials):
+    """AL and PL on one seed differ only by the sampling policy: an AL run whose one candidate
+    is pi_l itself buys exactly PL's episodes (same actions), although it also collects
+    reward-free episodes before every purchase."""
+    runs = {
+        mode: _api(mode=mode, schedule=(3, 2, 2), num_trials=num_trials, candidate_offsets=(0.0,))
+        for mode in ("active", "passive")
+    }
+    for api in runs.values():
+        api.run()
+    active, passive = runs["active"], runs["passive"]
+    assert active.history[-1].reward_free_transitions > 0
+    bought = {mode: api.rewarded.episodes() for mode, api in runs.items()}
+    assert torch.equal(bought["active"]["action"], bought["passive"]["action"])
+    assert torch.equal(bought["active"]["observation"], bought["passive"]["observation"])
+    assert torch.equal(active.theta, passive.theta)

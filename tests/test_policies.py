@@ -10,6 +10,7 @@ from torch_api.policies import (
     TabularPolicy,
     epsilon_greedy_probs,
     greedy_actions,
+    greedy_probs,
     softmax_probs,
 )
 
@@ -30,14 +31,54 @@ def test_epsilon_greedy_probabilities():
         epsilon_greedy_probs(q, -0.1)
 
 
-def test_ties_break_to_lowest_index():
+def test_greedy_actions_take_the_lowest_maximal_index():
     q = torch.tensor([[1.0, 1.0], [0.0, 2.0], [3.0, 3.0 + 1e-14]])
     assert greedy_actions(q).tolist() == [0, 1, 0]
 
 
-def test_initial_policy_of_the_paper_is_all_left():
-    """θ = 1 gives Q̂_0(s, a) = Σ_b phi_b(s, a), equal for both actions: the tie goes to action 0."""
-    policy = LinearQPolicy(basis=_basis(), theta=torch.ones(8), epsilon=0.15)
+def test_ties_split_the_greedy_mass_evenly():
+    """Every action within the tolerance of the maximum gets an equal share of 1 - ε."""
+    q = torch.tensor([[1.0, 1.0, 0.0], [0.0, 2.0, 2.0 + 1e-14], [5.0, 5.0, 5.0], [0.0, 1.0, 0.5]])
+    expected_greedy = torch.tensor(
+        [[0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [1 / 3, 1 / 3, 1 / 3], [0.0, 1.0, 0.0]],
+        dtype=torch.float64,
+    )
+    torch.testing.assert_close(greedy_probs(q), expected_greedy)
+    eps = 0.3
+    torch.testing.assert_close(epsilon_greedy_probs(q, eps), (1 - eps) * expected_greedy + eps / 3)
+    # a gap above the tolerance is no tie
+    assert greedy_probs(torch.tensor([1.0, 1.0 + 1e-6])).tolist() == [0.0, 1.0]
+
+
+def test_lowest_index_rule_stays_available():
+    q = torch.tensor([[1.0, 1.0, 0.0], [0.0, 2.0, 2.0], [0.0, 1.0, 0.5]])
+    torch.testing.assert_close(
+        epsilon_greedy_probs(q, 0.3, tie_break="lowest"),
+        torch.tensor([[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.8, 0.1]], dtype=torch.float64),
+    )
+    with pytest.raises(ValueError, match="tie_break must be one of"):
+        epsilon_greedy_probs(q, 0.3, tie_break="random")
+    with pytest.raises(ValueError, match="tie_break must be one of"):
+        LinearQPolicy(basis=_basis(), theta=torch.ones(8), epsilon=0.1, tie_break="first")
+
+
+@pytest.mark.parametrize("theta_value", [0.0, 1.0])
+def test_theta_zero_or_one_gives_a_uniform_policy(theta_value):
+    """θ = 0 (no reward seen) or θ_0 = 1 (pi_1, eq. 58/67): Q̂ ties for every action."""
+    obs = torch.arange(1, 11, dtype=torch.float32).unsqueeze(-1)
+    policy = LinearQPolicy(basis=_basis(), theta=torch.full((8,), theta_value), epsilon=0.15)
+    uniform = torch.full((10, 2), 0.5, dtype=torch.float64)
+    torch.testing.assert_close(policy.action_probs(obs), uniform)
+    # the tie rule survives the copies the library makes of a policy
+    for copy in (policy.with_rule(epsilon=0.0), policy.trial_slice(slice(None)).to_device("cpu")):
+        torch.testing.assert_close(copy.action_probs(obs), uniform)
+
+
+def test_initial_policy_with_lowest_index_ties_is_all_left():
+    """With ``tie_break="lowest"`` θ = 1 sends the tie to action 0: pi_1 is 1 - ε/2 left."""
+    policy = LinearQPolicy(
+        basis=_basis(), theta=torch.ones(8), epsilon=0.15, tie_break="lowest"
+    ).with_rule(epsilon=0.15)
     probs = policy.action_probs(torch.arange(1, 11, dtype=torch.float32).unsqueeze(-1))
     torch.testing.assert_close(probs[:, 0], torch.full((10,), 1 - 0.15 / 2, dtype=torch.float64))
 

@@ -27,7 +27,7 @@ from torch_api.data import (
     validate_episodes,
 )
 from torch_api.design import build_design
-from torch_api.policies import LinearQPolicy
+from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.selector import (
     PAPER_EPSILON_OFFSETS,
@@ -39,8 +39,15 @@ from torch_api.store import CorruptRunError, RunStore, StoredRun
 
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
-_STREAMS = {"policy": 0, "reward_free_env": 1, "rewarded_env": 2, "evaluation": 3, "trial": 4}
-_SLICE_STREAMS = {"policy": 5, "rewarded_env": 6}  # per-episode slices (rewarded_slice="episode")
+_STREAMS = {
+    "policy": 0,
+    "reward_free_env": 1,
+    "rewarded_env": 2,
+    "evaluation": 3,
+    "trial": 4,
+    "reward_free_policy": 5,
+}
+_SLICE_STREAMS = {"policy": 6, "rewarded_env": 7}  # per-episode slices (rewarded_slice="episode")
 SLICES = ("all", "episode")
 HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
 
@@ -66,8 +73,10 @@ def derive_seed(seed: int, iteration: int, stream: str) -> int:
 
 def _check_lambda(lam: float) -> None:
     """λ must be a finite number > 0; a huge one (θ shrunk to about 0) is warned about."""
-    if not (isinstance(lam, numbers.Real) and math.isfinite(lam) and lam > 0):
-        raise ValueError(f"lam must be a finite number > 0, got {lam!r}")
+    if not (isinstance(lam, numbers.Real) and lam > 0):
+        raise ValueError(f"lam must be > 0, got {lam}")
+    if not math.isfinite(lam):
+        raise ValueError(f"lam must be finite, got {lam}")
     if lam > HUGE_LAMBDA:
         warnings.warn(
             f"lam = {lam:g} is huge: the ridge penalty dominates every design and θ shrinks to "
@@ -89,8 +98,10 @@ def _count(name: str, value, minimum: int = 1) -> int:
     integral = isinstance(value, numbers.Integral) or (
         isinstance(value, float) and value.is_integer()
     )
-    if isinstance(value, bool) or not integral or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if isinstance(value, bool) or not integral:
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
     return int(value)
 
 
@@ -215,6 +226,10 @@ class ActivePolicyIteration:
         improvement: ``"epsilon_greedy"`` (the paper) or ``"softmax"`` (eq. 7; pi_l uses
             ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
         beta: softmax temperature.
+        tie_break: how the ε-greedy policies share the greedy mass among actions whose Q̂ ties
+            for the maximum: ``"uniform"`` (equal parts: pi_1 of θ_0 = 1, and any pi_l of
+            θ = 0 after rewards that were all zero, is uniform) or ``"lowest"`` (all to the
+            lowest action index). See :func:`~torch_api.policies.greedy_probs`.
         evaluate: optional callback ``(policy, seed) -> dict`` measuring pi_{l+1} after every
             iteration. The policy samples from streams seeded from (seed, l) (one per trial with
             ``trial_seeds``); ``seed`` is derived from (seed, l) too, for the callback's own
@@ -224,7 +239,9 @@ class ActivePolicyIteration:
         seed: seed of the run. Each iteration re-seeds the policies' stream and the
             environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
             the same seed in active and passive mode share the rewarded environments' streams
-            (a paired design).
+            and the sampling streams of the rewarded episodes (a paired design): the reward-free
+            rollouts of the active mode draw their actions from streams of their own
+            (``"reward_free_policy"``), so the pair differs only by the sampling policy.
         trial_seeds: with ``num_trials``, one seed per trial (default: derived from ``seed``).
             Each trial then draws from streams of its own, seeded from ``(trial_seed, l)``: the
             policies' sampling and, for environments with ``set_block_seeds`` (this project's
@@ -288,6 +305,7 @@ class ActivePolicyIteration:
         candidate_offsets: Sequence[float] = PAPER_EPSILON_OFFSETS,
         improvement: str = "epsilon_greedy",
         beta: float | None = None,
+        tie_break: str = "uniform",
         evaluate: Callable[[LinearQPolicy, int], dict] | None = None,
         num_trials: int | None = None,
         seed: int = 0,
@@ -304,6 +322,8 @@ class ActivePolicyIteration:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if improvement not in IMPROVEMENTS:
             raise ValueError(f"improvement must be one of {IMPROVEMENTS}, got {improvement!r}")
+        if tie_break not in TIE_BREAKS:
+            raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
         if improvement == "softmax" and not (beta is not None and beta > 0):
             raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
         if not schedule or not all(
@@ -354,6 +374,7 @@ class ActivePolicyIteration:
         self.candidate_offsets = tuple(candidate_offsets)
         self.improvement = improvement
         self.beta = beta
+        self.tie_break = tie_break
         self.evaluate = evaluate
         self.seed = int(seed)
         if num_trials is None and trial_seeds is not None:
@@ -370,6 +391,9 @@ class ActivePolicyIteration:
         self.device = torch.device("cpu") if device is None else torch.device(device)
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
         self.generator = torch.Generator().manual_seed(self.seed)
+        # the reward-free rollouts' own sampling streams (re-seeded every iteration)
+        self.reward_free_generator = torch.Generator().manual_seed(self.seed)
+        self._reward_free_blocks: list[torch.Generator] | None = None
         theta = torch.ones(basis.num_features, dtype=torch.float64)
         if initial_theta is not None:
             theta = torch.as_tensor(initial_theta, dtype=torch.float64)
@@ -401,7 +425,7 @@ class ActivePolicyIteration:
             num_steps=self.num_steps,
             num_repeats=self.num_repeats,
             lam=self.lam,
-            generator=self.generator,
+            generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
         )
@@ -435,7 +459,17 @@ class ActivePolicyIteration:
             if not 0 <= epsilon <= 1:
                 raise ValueError(f"epsilon_schedule({iteration}) = {epsilon} lies outside [0, 1]")
             rule = {"epsilon": epsilon}
-        return LinearQPolicy(basis=self.basis, theta=theta, generator=self.generator, **rule)
+        return LinearQPolicy(
+            basis=self.basis,
+            theta=theta,
+            generator=self.generator,
+            tie_break=self.tie_break,
+            **rule,
+        )
+
+    def initial_policy(self) -> LinearQPolicy:
+        """pi_1, the policy of θ_0, whatever the run's progress (e.g. after a resume)."""
+        return self._policy(self._initial_theta.expand_as(self.theta).clone(), 1)
 
     def _candidate_rules(self) -> torch.Tensor:
         """ε (or β) of the K candidates of the coming iteration (eq. 59); the first is pi_l's."""
@@ -451,6 +485,15 @@ class ActivePolicyIteration:
     def candidates(self) -> list[LinearQPolicy]:
         """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
         return [self._with_rule(rule) for rule in self._candidate_rules()]
+
+    def _reward_free_candidates(self) -> list[LinearQPolicy]:
+        """The candidates drawing from the reward-free streams, not from pi_l's (which the
+        rewarded episodes use): AL's selection then leaves the rewarded draws as PL's."""
+        candidates = self.candidates()
+        for candidate in candidates:
+            candidate.generator = self.reward_free_generator
+            candidate.block_generators = self._reward_free_blocks
+        return candidates
 
     def block_seeds(self, iteration: int, stream: str) -> list[int]:
         """Per-trial seeds of one stream of iteration l (``trial_seeds`` runs only)."""
@@ -482,9 +525,16 @@ class ActivePolicyIteration:
         """Re-seed the policies' streams and the environments of iteration l."""
         trials = math.prod(self.trial_dims)
         self.generator.manual_seed(derive_seed(self.seed, iteration, "policy"))
+        self.reward_free_generator.manual_seed(
+            derive_seed(self.seed, iteration, "reward_free_policy")
+        )
         if self.trial_seeds is not None:
             self.policy.block_generators = [
                 torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "policy")
+            ]
+            self._reward_free_blocks = [
+                torch.Generator().manual_seed(s)
+                for s in self.block_seeds(iteration, "reward_free_policy")
             ]
         seed_env(self._env_for(trials * num_episodes), *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
@@ -525,7 +575,7 @@ class ActivePolicyIteration:
             self.selector.num_episodes = num_episodes
             earlier = self.rewarded.episodes() if len(self.rewarded) else None
             selection = self.selector.select(
-                self.policy, self.candidates(), earlier, iteration=l_now
+                self.policy, self._reward_free_candidates(), earlier, iteration=l_now
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
@@ -692,6 +742,7 @@ class ActivePolicyIteration:
             "knn_k": self.psi.k,
             "improvement": self.improvement,
             "beta": self.beta,
+            "tie_break": self.tie_break,
             "candidate_offsets": list(self.candidate_offsets),
             "epsilons": None
             if self.improvement == "softmax"
@@ -815,4 +866,5 @@ class ActivePolicyIteration:
         remaining = range(self.iteration, len(self.schedule))
         for _ in tqdm(remaining, desc=f"API ({self.mode})", disable=not progress):
             self.step()
+        self.close()  # (a resumed run that was complete already)
         return self.history

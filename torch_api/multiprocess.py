@@ -31,6 +31,7 @@ from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
 from torch_api.data import _episodes_from_rollout, seed_env, validate_episodes
+from torch_api.lifetime import die_with_parent
 
 __all__ = ["collect_episodes_in_workers"]
 
@@ -71,6 +72,7 @@ class _WorkerEnv:
         self.make_env, self.rows, self.seed, self.block_seeds = make_env, rows, seed, block_seeds
 
     def __call__(self) -> EnvBase:
+        die_with_parent()  # (called in the worker process)
         env = self.make_env(self.rows)
         seed_env(env, self.seed, self.block_seeds)
         return env

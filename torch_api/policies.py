@@ -18,13 +18,19 @@ __all__ = [
     "ActionProbsPolicy",
     "LinearQPolicy",
     "TabularPolicy",
+    "TIE_BREAKS",
     "epsilon_greedy_probs",
     "greedy_actions",
+    "greedy_mask",
+    "greedy_probs",
     "linear_q_values",
     "softmax_probs",
 ]
 
-TIE_RTOL = 1e-10  # Q-values this close (relative) count as a tie, broken to the lowest index
+TIE_RTOL = 1e-10  # Q-values this close (relative) to the maximum count as tied with it
+TIE_BREAKS = ("uniform", "lowest")
+"""How the greedy mass is shared among tied maximal actions: equal parts, or all to the lowest
+index."""
 
 
 def linear_q_values(phi_all: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -49,37 +55,71 @@ def linear_q_values(phi_all: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     return (phi_all * view.to(phi_all.dtype)).sum(-1)
 
 
-def greedy_actions(q: torch.Tensor) -> torch.Tensor:
-    """``argmax_a q[..., a]``, ties (within ``TIE_RTOL``) to the lowest index.
+def greedy_mask(q: torch.Tensor) -> torch.Tensor:
+    """Which actions are maximal: ``q[..., a]`` within ``TIE_RTOL`` (relative) of the maximum.
 
-    ``[..., A] -> [...]``.
+    ``[..., A] -> [..., A]`` bool, at least one True per row.
     """
     best = q.max(-1, keepdim=True).values
-    is_max = q >= best - TIE_RTOL * (1.0 + best.abs())
-    return is_max.to(torch.int8).argmax(-1)  # argmax returns the first maximal index
+    return q >= best - TIE_RTOL * (1.0 + best.abs())
+
+
+def greedy_actions(q: torch.Tensor) -> torch.Tensor:
+    """One greedy action per row: the lowest index among the maximal ones (:func:`greedy_mask`).
+
+    ``[..., A] -> [...]``. A policy that splits ties evenly uses :func:`greedy_probs` instead.
+    """
+    return greedy_mask(q).to(torch.int8).argmax(-1)  # argmax returns the first maximal index
+
+
+def _check_tie_break(tie_break: str) -> str:
+    if tie_break not in TIE_BREAKS:
+        raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
+    return tie_break
+
+
+def greedy_probs(q: torch.Tensor, tie_break: str = "uniform") -> torch.Tensor:
+    """The greedy policy ``I(a = argmax Q̂)`` of eq. 57/66 as probabilities ``[..., A] -> [..., A]``.
+
+    When several actions are maximal (within ``TIE_RTOL``), ``tie_break="uniform"`` gives each
+    of them an equal share (the normalised indicator of the argmax set: with all actions tied,
+    e.g. θ = 0 or the paper's θ_0 = 1 on a basis with the same features per action, the policy
+    is uniform); ``"lowest"`` gives all the mass to the lowest index among them.
+
+    Returns float64.
+    """
+    _check_tie_break(tie_break)
+    if tie_break == "lowest":
+        return torch.nn.functional.one_hot(greedy_actions(q), q.shape[-1]).to(torch.float64)
+    mask = greedy_mask(q).to(torch.float64)
+    return mask / mask.sum(-1, keepdim=True)
 
 
 def _check_epsilon(epsilon) -> torch.Tensor:
     eps = torch.as_tensor(epsilon, dtype=torch.float64)
     if not torch.isfinite(eps).all() or (eps < 0).any():
         raise ValueError(f"epsilon must be >= 0, got {epsilon}")
-    return eps.clamp(max=1.0)  # SPEC section 3: ε is capped at 1 (uniform)
+    return eps.clamp(max=1.0)  # ε is capped at 1 (uniform)
 
 
-def epsilon_greedy_probs(q: torch.Tensor, epsilon) -> torch.Tensor:
-    """ε-greedy probabilities (eq. 8): the greedy action gets ``1 - ε + ε/A``, the others ``ε/A``.
+def epsilon_greedy_probs(q: torch.Tensor, epsilon, tie_break: str = "uniform") -> torch.Tensor:
+    """ε-greedy probabilities (eq. 8): the greedy mass ``1 - ε`` plus ``ε/A`` for every action.
+
+    With a single maximal action it gets ``1 - ε + ε/A`` and the others ``ε/A``; tied maximal
+    actions share the greedy mass as :func:`greedy_probs` says (``tie_break``).
 
     Args:
         q: Q-values ``[..., A]``.
         epsilon: ε ≥ 0, a number or a tensor broadcastable to ``[...]``; values above 1 are
             capped at 1 (uniform).
+        tie_break: ``"uniform"`` (tied actions share the greedy mass equally) or ``"lowest"``.
 
     Returns:
         ``[..., A]`` in float64.
     """
     eps = _check_epsilon(epsilon).to(q.device)
     num_actions = q.shape[-1]
-    greedy = torch.nn.functional.one_hot(greedy_actions(q), num_actions).to(torch.float64)
+    greedy = greedy_probs(q, tie_break)
     eps = eps.unsqueeze(-1) if eps.ndim else eps
     return (1.0 - eps) * greedy + eps / num_actions
 
@@ -288,6 +328,10 @@ class LinearQPolicy(ActionProbsPolicy):
             trial). Exclusive with ``beta``.
         beta: temperature of the softmax rule (eq. 7), a number or ``[*T]``. Exclusive with
             ``epsilon``.
+        tie_break: how the ε-greedy rule shares the greedy mass among actions whose Q̂ ties for
+            the maximum: ``"uniform"`` (equal parts; with θ = 0, or θ = 1 on a basis with the
+            same features per action, the policy is uniform) or ``"lowest"`` (all to the lowest
+            index). See :func:`greedy_probs`.
         one_hot: write one-hot actions (for envs with a ``OneHot`` action spec).
         generator: random stream for sampling (default: a fresh CPU generator seeded 0).
         observation_key, action_key, probs_key: tensordict keys.
@@ -310,12 +354,14 @@ class LinearQPolicy(ActionProbsPolicy):
         theta: torch.Tensor,
         epsilon: float | torch.Tensor | None = None,
         beta: float | torch.Tensor | None = None,
+        tie_break: str = "uniform",
         one_hot: bool = False,
         generator: torch.Generator | None = None,
         observation_key="observation",
         action_key="action",
         probs_key="sample_probs",
     ) -> None:
+        _check_tie_break(tie_break)
         if (epsilon is None) == (beta is None):
             raise ValueError(
                 f"give exactly one of epsilon (ε-greedy) or beta (softmax), got epsilon={epsilon}, "
@@ -347,6 +393,7 @@ class LinearQPolicy(ActionProbsPolicy):
         self.register_buffer("theta", theta)
         self.epsilon = epsilon
         self.beta = beta
+        self.tie_break = tie_break
 
     def q_values(self, obs: torch.Tensor) -> torch.Tensor:
         """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
@@ -367,7 +414,13 @@ class LinearQPolicy(ActionProbsPolicy):
         """The policy of some trials only (θ's first dim, and a per-trial ε or β, sliced)."""
         rule = {k: v[trials] if v.ndim else v for k, v in self._rule().items()}
         return self._copy_streams(
-            LinearQPolicy(basis=self.basis, theta=self.theta[trials], **rule, **self._io_kwargs()),
+            LinearQPolicy(
+                basis=self.basis,
+                theta=self.theta[trials],
+                **rule,
+                tie_break=self.tie_break,
+                **self._io_kwargs(),
+            ),
             trials,
         )
 
@@ -378,14 +431,18 @@ class LinearQPolicy(ActionProbsPolicy):
             rule = rule.reshape(*rule.shape, *([1] * (q.ndim - 1 - rule.ndim)))
         if self.beta is not None:
             return softmax_probs(q, rule)
-        return epsilon_greedy_probs(q, rule)
+        return epsilon_greedy_probs(q, rule, self.tie_break)
 
     def to_device(self, device) -> LinearQPolicy:
         """A copy whose θ lives on ``device`` (the sampling generator stays where it is)."""
         rule = self._rule()
         return self._copy_streams(
             LinearQPolicy(
-                basis=self.basis, theta=self.theta.to(device), **rule, **self._io_kwargs()
+                basis=self.basis,
+                theta=self.theta.to(device),
+                **rule,
+                tie_break=self.tie_break,
+                **self._io_kwargs(),
             )
         )
 
@@ -398,6 +455,11 @@ class LinearQPolicy(ActionProbsPolicy):
         """The same θ and basis under another rule (e.g. the candidates of eq. 59)."""
         return self._copy_streams(
             LinearQPolicy(
-                basis=self.basis, theta=self.theta, epsilon=epsilon, beta=beta, **self._io_kwargs()
+                basis=self.basis,
+                theta=self.theta,
+                epsilon=epsilon,
+                beta=beta,
+                tie_break=self.tie_break,
+                **self._io_kwargs(),
             )
         )

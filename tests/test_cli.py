@@ -1,0 +1,144 @@
+"""The example scripts' command lines: fast, uniform, honest (examples/_cli.py).
+
+Every script parses its arguments before it imports anything heavy, so ``--help`` and a bad
+flag answer at once; each test runs the script as a user would, in a subprocess.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+sys.path.insert(0, str(EXAMPLES))
+
+import _cli  # noqa: E402
+
+SCRIPTS = sorted(p.name for p in EXAMPLES.glob("*.py") if not p.name.startswith("_"))
+HEAVY = {"torch", "torchrl", "tensordict", "mujoco", "matplotlib", "scipy", "numpy"}
+HEAVY |= {"gymnasium", "tqdm", "torch_api", "envs"}
+HELP_SECONDS = 2.0
+
+# one out-of-range value per script: (flag, value, the message's words)
+BAD_FLAG = {
+    "batting_reference.py": ("--episodes", "-3", "--episodes must be >= 1, got -3"),
+    "chain_walk_api.py": ("--trials", "-3", "--trials must be >= 2"),
+    "chain_walk_one_step.py": ("--trials", "-3", "--trials must be >= 1, got -3"),
+    "gym_drop_in.py": ("--trials", "-3", "--trials must be >= 2"),
+    "plot_batting_episode.py": ("--snapshot-ms", "-3", "--snapshot-ms must be > 0, got -3.0"),
+    "train_batting.py": ("--trials", "-3", "--trials must be >= 1, got -3"),
+}
+
+
+def _run(script: str, *args: str, python_flags: tuple[str, ...] = ()):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    started = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, *python_flags, str(EXAMPLES / script), *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    return done, time.perf_counter() - started
+
+
+def test_every_script_is_covered():
+    assert set(BAD_FLAG) == set(SCRIPTS)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_help_answers_fast_without_heavy_imports(script):
+    done, seconds = _run(script, "--help", python_flags=("-X", "importtime"))
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert seconds < HELP_SECONDS, f"{script} --help took {seconds:.2f} s"
+    imported = {
+        line.split("|")[-1].strip().split(".")[0]
+        for line in done.stderr.splitlines()
+        if line.startswith("import time:")
+    }
+    assert not imported & HEAVY, f"{script} --help imports {sorted(imported & HEAVY)}"
+    assert "(default:" in done.stdout
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_option_has_help_text(script):
+    tree = ast.parse((EXAMPLES / script).read_text())
+    args = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Args")
+    body = args.body
+    for i, node in enumerate(body):
+        if isinstance(node, ast.AnnAssign):
+            after = body[i + 1] if i + 1 < len(body) else None
+            assert isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant), (
+                f"{script}: option {node.target.id} has no help text"
+            )
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_bad_value_is_one_line_naming_it_exit_2(script):
+    flag, value, message = BAD_FLAG[script]
+    done, seconds = _run(script, flag, value)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert message in done.stderr
+    assert "Traceback" not in done.stderr
+    assert seconds < HELP_SECONDS
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_unwritable_output_folder_is_one_line_before_any_work(script, tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    flag, target = ("--out", blocker / "x" / "out.json")
+    if script not in ("batting_reference.py", "plot_batting_episode.py"):
+        flag, target = ("--out-dir", blocker / "x")
+    done, seconds = _run(script, flag, str(target))
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "is not writable" in done.stderr and "Traceback" not in done.stderr
+    assert seconds < HELP_SECONDS  # refused before the heavy imports, let alone the work
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_flag_the_script_cannot_honour_is_refused_with_the_reason(script):
+    tree = ast.parse((EXAMPLES / script).read_text())
+    fields = {
+        n.target.id
+        for c in tree.body
+        if isinstance(c, ast.ClassDef) and c.name == "Args"
+        for n in c.body
+        if isinstance(n, ast.AnnAssign)
+    }
+    for name in ("trials", "seed", "out_dir", "device", "resume", "backend"):
+        if name in fields:
+            continue
+        done, _ = _run(script, f"--{name.replace('_', '-')}", "1")
+        assert done.returncode == 2
+        assert f"is not available in {script}:" in done.stderr, done.stderr
+
+
+def test_backends_match_the_library():
+    from torch_api.dispatch import BACKENDS
+
+    assert _cli.BACKENDS == BACKENDS
+
+
+def test_out_dir_error_on_a_full_disk(tmp_path, monkeypatch):
+    assert _cli.out_dir_error(tmp_path / "new") is None
+    assert (tmp_path / "new").is_dir()
+    usage = _cli.shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(_cli.shutil, "disk_usage", lambda path: usage._replace(free=3 * 2**20))
+    why = _cli.out_dir_error(tmp_path)
+    assert why is not None and "has 3 MB free" in why
+
+
+def test_device_syntax_is_checked_without_torch():
+    assert _cli.device_syntax_error("cuda:1") is None
+    assert "got 'gpu'" in _cli.device_syntax_error("gpu")
