@@ -220,11 +220,12 @@ def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_on
 
 def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     args = ("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2")
-    args += ("--test-episodes", "2", "--test-steps", "20", "--out-dir", str(tmp_path))
-    fresh = _run("gym_drop_in.py", *args, "--resume")
+    args += ("--test-episodes", "2", "--test-steps", "20")
+    fresh = _run("gym_drop_in.py", *args, "--out-dir", str(tmp_path / "ref"), "--resume")
     assert "starting it fresh" in fresh
-    expected = json.loads((tmp_path / "gym_drop_in.json").read_text())
-    proc = _start("gym_drop_in.py", *args, "--overwrite")
+    expected = json.loads((tmp_path / "ref" / "gym_drop_in.json").read_text())
+    args += ("--out-dir", str(tmp_path))
+    proc = _start("gym_drop_in.py", *args)
     _wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)

@@ -108,6 +108,7 @@ def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_m
     slice_size = TRIALS * STEPS * (max(SCHEDULE) if slice_mode == "all" else 1)
     rng = random.Random(14)
     kills = timed = runs = 0
+    measured_all = wasted_all = 0
     while kills < KILLS[slice_mode] or timed < TIMED_KILLS:
         runs += 1
         path, measured, result = (tmp_path / f"run{runs}.{x}" for x in ("db", "count", "json"))
@@ -140,10 +141,15 @@ def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_m
         assert got == expected  # θ, choices, J' and every bought episode, tensor by tensor
         assert _stored(path) == reference_measured  # each bought reward stored exactly once
         assert _count(measured) == reference_measured + wasted
+        measured_all, wasted_all = measured_all + _count(measured), wasted_all + wasted
     kinds = set()
     for i in range(1, runs + 1):
         kills_file = tmp_path / f"run{i}.count.kills"
         kinds |= set(kills_file.read_text().split("\n")) if kills_file.exists() else set()
     assert {"rewarded step", "inside a transaction", "after put_episodes"} <= kinds, kinds
-    print(f"{slice_mode}: {kills} + {timed} SIGKILLs in {runs} runs, all equal to the reference")
+    print(
+        f"{slice_mode}: {kills} + {timed} SIGKILLs in {runs} runs, all equal to the reference; "
+        f"{measured_all} rewarded transitions measured for {runs * reference_measured} kept, "
+        f"{wasted_all} in slices cut by a kill"
+    )
     print(f"killed at: {sorted(kinds - {''})}")
