@@ -21,7 +21,7 @@ from mujoco.batch import Batch
 
 from envs.batting import BattingSimulator, PhysicsAudit
 
-STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
+INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 MAX_BATCH = 4096  # simulations per replayed Batch (bounds its memory)
 
 
@@ -76,7 +76,7 @@ def replay_loop(audit: PhysicsAudit) -> dict[str, float]:
         elapsed = 0.0
         for nstep, (states, torques) in _grouped(audit, kind).items():
             for state, torque in zip(states, torques, strict=True):
-                mujoco.mj_setState(model, data, state, STATE_SPEC)
+                mujoco.mj_setState(model, data, state, INTEGRATION_STATE)
                 data.ctrl[:] = torque
                 tic = time.perf_counter()
                 for _ in range(nstep):

@@ -1,4 +1,4 @@
-"""Fidelity of the batting integration scheme (SPEC section 5, "Integration and fidelity").
+"""Fidelity of the batting integration scheme (docs/batting.md, "Fidelity").
 
 Runs all 2^10 = 1024 open-loop action sequences (N = 10, A = 2) without noise, once with the
 env's scheme (coarse RK4 swing, fine impact window) and once with a uniform Euler step

@@ -18,7 +18,7 @@ carry of the ball, given at the control step in which the bat first touches the 
 other step. Episodes never terminate; they are truncated after ``max_steps`` (10) steps.
 
 Integration scheme ("coarse swing, fine impact window"). A uniform 7.5 ms step makes the impact
-unphysical and a uniform fine step is expensive (SPEC section 5). Each control step is first
+unphysical and a uniform fine step is expensive (docs/batting.md). Each control step is first
 integrated at ``coarse_dt`` (the paper's 7.5 ms: 10 coarse intervals, with MuJoCo's RK4 so that
 the swing stays accurate) on a coarse model in which the ball is frozen: coarse steps never
 resolve a contact (the arm touches only the ball, and only in fine steps), so contacts and
@@ -128,7 +128,7 @@ _QPOS_ARM = slice(0, 2)  # phi1, phi2 (rad)
 _QPOS_BALL = slice(2, 9)  # ball position (m) and orientation quaternion
 _QVEL_BALL = slice(2, 8)  # ball linear (m/s, world frame) and angular velocity (rad/s)
 _SENSORS = ("bat_ball_dist", "bat_ball_contact", "pin_ball_contact")
-_STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
+_INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
     "rk4": mujoco.mjtIntegrator.mjINT_RK4,
@@ -376,7 +376,7 @@ class BattingSimulator:
         offset = 0
         for bit in range(mujoco.mjtState.mjNSTATE.value):
             flag = 1 << bit
-            if not flag & _STATE_SPEC.value:
+            if not flag & _INTEGRATION_STATE.value:
                 continue
             size = mujoco.mj_stateSize(self.coarse_model, flag)
             if flag == component.value:
@@ -397,7 +397,7 @@ class BattingSimulator:
         data.time = 0.0
         mujoco.mj_forward(model, data)
         row = np.empty(self._nstate)
-        mujoco.mj_getState(model, data, row, _STATE_SPEC)
+        mujoco.mj_getState(model, data, row, _INTEGRATION_STATE)
         return row
 
     def _warning_counts(self) -> np.ndarray:
@@ -436,7 +436,7 @@ class BattingSimulator:
         """Advance ``batch``'s simulations ``ids`` by ``nstep`` physics steps at fixed torque.
 
         Records ``sensordata`` (record k: the state before physics step k), and ``qpos`` and
-        ``qvel`` if ``qpos``, the integration state (key ``_STATE_SPEC.value``) if ``states``
+        ``qvel`` if ``qpos``, the integration state (key ``_INTEGRATION_STATE.value``) if ``states``
         (record k: the state after physics step k).
         """
         if self.audit is not None:
@@ -447,7 +447,7 @@ class BattingSimulator:
         if qpos:
             record += ["qpos", "qvel"]
         if states:
-            record.append(_STATE_SPEC.value)
+            record.append(_INTEGRATION_STATE.value)
         out = batch.rollout(nstep, control=control, record=record, ids=ids)
         self.physics_steps[ids] += nstep
         if batch is self.fine:
@@ -505,7 +505,7 @@ class BattingSimulator:
         else:
             start = self.main.state.copy()
             out = self._run(self.main, everyone, torque, self.n_coarse, states=True)
-            states = np.concatenate([start[:, None], out[_STATE_SPEC.value]], axis=1)
+            states = np.concatenate([start[:, None], out[_INTEGRATION_STATE.value]], axis=1)
             fine = self._near_intervals(states)
             if self.record:
                 for i in everyone:

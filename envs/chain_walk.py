@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 # f(s') for s' = 1 … 10 (reward units): the project's reading of the paper's Figure 2, a main
-# bump at s' = 4 with a secondary rise at the right end (SPEC section 4).
+# bump at s' = 4 with a secondary rise at the right end (docs/chain_walk.md).
 DEFAULT_REWARD_PROFILE = (0.0, 0.1, 0.4, 1.0, 0.6, 0.2, 0.0, 0.1, 0.3, 0.5)
 N_STATES = 10  # number of states (states are numbered 1 … N_STATES)
 N_ACTIONS = 2  # actions: index 0 = 'L' (move left), index 1 = 'R' (move right)
@@ -406,7 +406,7 @@ def exact_psi(
 def true_generalisation_error(
     theta: torch.Tensor, psi: torch.Tensor, R: torch.Tensor, d: torch.Tensor
 ) -> torch.Tensor:
-    """Exact generalisation error of eq. 32 with the exact psi (SPEC section 4).
+    """Exact generalisation error of eq. 32 with the exact psi (docs/chain_walk.md).
 
     ``G(theta) = sum_{s,a} d(s,a) (theta^T psi(s,a) - R(s,a))^2``.
 
@@ -496,7 +496,7 @@ def deterministic_policy_probs(
 ) -> torch.Tensor:
     """Action probabilities of the epsilon-greedy version of a deterministic base policy.
 
-    The base action gets ``1 - eps + eps/A`` and every other action ``eps/A`` (SPEC section 3;
+    The base action gets ``1 - eps + eps/A`` and every other action ``eps/A`` (docs/algorithm.md;
     for A = 2 this is the paper's "intended action with probability 1 - eps/2", section 3.5).
     ``eps`` above 1 is capped at 1 (uniform policy).
 

@@ -43,6 +43,10 @@ T = TypeVar("T")
 BACKENDS = ("local", "processes", "ray")
 """Where chunks of trials run (``torch_api.dispatch.BACKENDS``; a test keeps them equal)."""
 
+LOGGERS = ("none", "csv", "tensorboard", "wandb")
+"""``--logger`` choices: TorchRL's loggers (``torchrl.record.loggers``) for the learning curves."""
+_LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
+
 MIN_FREE_MB = 50
 """An output folder needs at least this much free space (MB) before a run starts."""
 
@@ -204,6 +208,44 @@ def out_dir_error(
     return None
 
 
+def logger_error(kind: str) -> str | None:
+    """Why ``--logger kind`` cannot be used here (its package is missing), or None."""
+    import importlib.util
+
+    package = _LOGGER_PACKAGES.get(kind)
+    if package is not None and importlib.util.find_spec(package) is None:
+        return f"--logger {kind} needs the {package} package: pip install {package}"
+    return None
+
+
+def make_logger(kind: str, out_dir: str | os.PathLike, experiment: str):
+    """A TorchRL logger writing under ``<out_dir>/logs/<experiment>``, or None for ``"none"``.
+
+    ``csv`` writes one CSV file per curve (``scalars/<name>.csv``: step, value), ``tensorboard``
+    event files for ``tensorboard --logdir <out_dir>/logs``, ``wandb`` a Weights & Biases run
+    (log in first; the run is named after the experiment).
+    """
+    if kind == "none":
+        return None
+    from torchrl.record.loggers import get_logger
+
+    return get_logger(kind, logger_name=str(Path(out_dir) / "logs"), experiment_name=experiment)
+
+
+def log_means(logger, prefix: str, step: int, values: dict[str, Any]) -> None:
+    """Log ``prefix/name`` = the mean of each per-trial list (or the number) at ``step``."""
+    if logger is None:
+        return
+    for name, value in values.items():
+        if value is None:
+            continue
+        if isinstance(value, list | tuple):
+            if not value:
+                continue
+            value = sum(value) / len(value)
+        logger.log_scalar(f"{prefix}/{name}", float(value), step=step)
+
+
 def parse(
     cls: type[T],
     argv: Sequence[str] | None,
@@ -235,6 +277,8 @@ def parse(
     device = getattr(args, "device", None)
     if problem is None and device is not None:
         problem = device_syntax_error(device)
+    if problem is None and hasattr(args, "logger"):
+        problem = logger_error(args.logger)
     if problem is None and out_dir is not None and hasattr(args, out_dir):
         problem = out_dir_error(getattr(args, out_dir), f"--{out_dir.replace('_', '-')}")
     if problem is None and device is not None and device != "cpu":

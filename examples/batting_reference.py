@@ -38,6 +38,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
         description=first_line(__doc__),
         check=check,
         unavailable={
+            "logger": "nothing is learnt: the JSON holds every number",
             "trials": "there is no learning here; the random policy's sample is --episodes",
             "out_dir": "this script writes one file: use --out FILE",
             "device": "MuJoCo runs on the CPU and there is no algebra to move",

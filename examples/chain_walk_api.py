@@ -57,11 +57,14 @@ from dataclasses import dataclass
 
 from _cli import (
     BACKENDS,
+    LOGGERS,
     Interrupted,
     exit_interrupted,
     exit_store_error,
     field,
     first_line,
+    log_means,
+    make_logger,
     parse,
     raise_on_signals,
     stored_runs_error,
@@ -114,6 +117,9 @@ class Args:
     """CPUs of a local Ray instance (0: all)"""
     device: str = "cpu"
     """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all of it"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
 
 
 def check(args: Args) -> str | None:
@@ -376,11 +382,21 @@ def write_csv(results: dict, path: Path) -> None:
 
 
 def plot(results: dict, path: Path) -> None:
-    """Figure 8: mean ± s.e. over trials of both performance measures against iterations."""
+    """Figure 8: both performance measures of pi_{l+1} against iterations.
+
+    Error bars are the standard error of the mean over the T trials; one colour per method,
+    one line style per schedule; the optimal policy's value is a horizontal line.
+    """
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    panels = (("test_return", "performance, eq. 61 (test episodes)"), ("percent_optimal", ""))
+    panels = (
+        ("test_return", "eq. 61: discounted return of 50 test episodes"),
+        ("percent_optimal", "exact expected return, % of the optimal policy"),
+    )
     styles = {"decreasing": "-", "fixed": "--"}
     colours = {"AL": "tab:red", "PL": "tab:blue"}
+    first_run = next(iter(results.values()))["runs"]["AL"]
+    trials = len(first_run["iterations"][0]["test_return"])
+    optimum = {"test_return": first_run["optimal_exact_return"], "percent_optimal": 100.0}
     for ax, (measure, label) in zip(axes, panels, strict=True):
         for name, res in results.items():
             for method, run in res["runs"].items():
@@ -396,12 +412,16 @@ def plot(results: dict, path: Path) -> None:
                     marker="o",
                     markersize=3,
                     capsize=3,
-                    label=f"{method} ({name})",
+                    label=f"{method}, {name}",
                 )
+        ax.axhline(optimum[measure], color="green", linewidth=1)
+        ax.text(0, optimum[measure], "optimal policy", va="top", fontsize=7, color="green")
+        ax.set_xticks(sorted({it["iteration"] for it in first_run["iterations"]}))
         ax.set_xlabel("iteration l (0: the initial policy pi_1)")
-        ax.set_ylabel(label or "exact expected return, % of the optimal policy")
+        ax.set_ylabel(label)
+        ax.set_title(f"mean ± s.e. of the mean over T = {trials} trials", fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes[1].legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -506,6 +526,12 @@ def run_all(args: Args, out: Path, names: list[str], jobs: list[tuple[str, str]]
     (out / "chain_walk_api.json").write_text(json.dumps(payload))
     write_csv(results, out / "chain_walk_api.csv")
     plot(results, out / "fig8_performance.png")
+    logger = make_logger(args.logger, out, "chain_walk_api")
+    for name, res in results.items():
+        for method, run in res["runs"].items():
+            for it in run["iterations"]:
+                curves = {k: it[k] for k in (*MEASURES, "rewarded_transitions")}
+                log_means(logger, f"{name}/{method}", it["iteration"], curves)
     print(f"wrote {out}/chain_walk_api.json, chain_walk_api.csv and fig8_performance.png")
     return payload
 

@@ -5,7 +5,7 @@ and ten sampling-policy candidates (ε = k/10), every trial
 
 1. collects Z = 5 reward-free sets of M = 10 episodes per candidate and computes J' (Algorithm 2),
 2. collects a rewarded set of M episodes per candidate, fits θ_k (eq. 22-28) and measures its
-   true generalisation error Ḡ_k exactly from the model (SPEC section 4),
+   true generalisation error Ḡ_k exactly from the model (docs/chain_walk.md),
 3. records Ḡ of the candidate chosen by active learning (AL: argmin J'), by passive learning
    (PL: k = 1, the evaluation policy itself) and by an oracle (OPT: argmin Ḡ).
 
@@ -56,6 +56,7 @@ def parse_args(argv=None) -> Args:
         argv,
         description=first_line(__doc__),
         unavailable={
+            "logger": "no iterations: one_step.json holds every number",
             "resume": "a run takes seconds and buys no expensive rewards; rerun it",
             "backend": "all trials run as one batch in this process",
         },
@@ -177,31 +178,86 @@ def summarise(j_prime: torch.Tensor, g_true: torch.Tensor) -> dict:
     }
 
 
-def plot_profiles(results: dict, key: str, ylabel: str, path: Path) -> None:
-    """Mean ± sd of a [T, K] quantity over k for each evaluation policy (Figures 3 and 4)."""
-    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.2), squeeze=False)
+METHOD_COLOURS = {"AL": "tab:red", "PL": "tab:blue", "OPT": "tab:green"}  # as in every figure
+
+
+def mean_se_clipped(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean over trials (axis 0) and its ± 1 s.e. bars ``[2, K]``, the lower bar clipped at 0.
+
+    The errors here are sums of squares: never negative, so no bar is drawn below zero.
+    """
+    mean = values.mean(0)
+    se = values.std(0, ddof=1) / np.sqrt(values.shape[0]) if values.shape[0] > 1 else 0 * mean
+    return mean, np.stack([np.minimum(se, mean), se])
+
+
+def plot_profiles(results: dict, key: str, ylabel: str, path: Path, obtained: bool) -> None:
+    """Mean ± 1 s.e. over trials of a [T, K] error over the candidates k (Figures 3 and 4).
+
+    With ``obtained``, the mean Ḡ that AL, PL and OPT obtain is drawn across each panel.
+    """
+    n = len(results)
+    fig, axes = plt.subplots(1, n, figsize=(4.3 * n, 3.6), squeeze=False)
     for ax, (base, res) in zip(axes[0], results.items(), strict=True):
         values = np.asarray(res[key])
-        ks = np.arange(1, values.shape[1] + 1)
-        ax.errorbar(ks, values.mean(0), yerr=values.std(0), marker="o", capsize=3)
+        trials, k = values.shape
+        ks = np.arange(1, k + 1)
+        mean, bars = mean_se_clipped(values)
+        style = {"color": "0.2", "marker": "o", "ms": 4, "capsize": 3}
+        ax.errorbar(ks, mean, yerr=bars, label="mean ± s.e. over trials", **style)
+        if obtained:
+            for name, dash in (("al", "--"), ("pl", ":"), ("opt", "-.")):
+                label = name.upper()
+                level = res["summary"][f"mean_g_{name}"]
+                colour = METHOD_COLOURS[label]
+                ax.axhline(level, color=colour, ls=dash, lw=1.5, label=f"mean Ḡ {label} obtains")
         ax.set_title(f"evaluation policy {base}", fontsize=9)
-        ax.set_xlabel("candidate k (ε = k/10)")
+        ax.set_xlabel(f"candidate k (ε = k/{k})")
+        ax.set_ylabel(ylabel)
         ax.set_xticks(ks)
-    axes[0][0].set_ylabel(ylabel)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    fig.suptitle(
+        f"{ylabel}: mean over T = {trials} trials, bars ± 1 standard error of the mean "
+        "(clipped at 0)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
 def plot_boxes(results: dict, path: Path) -> None:
-    """Ḡ obtained by AL, PL and OPT; whiskers at the 5 % and 95 % quantiles (Figure 5)."""
-    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.2), squeeze=False)
+    """Ḡ obtained by AL, PL and OPT per trial as box plots (Figure 5)."""
+    n = len(results)
+    fig, axes = plt.subplots(1, n, figsize=(4.3 * n, 3.8), squeeze=False)
+    names = ("AL", "PL", "OPT")
     for ax, (base, res) in zip(axes[0], results.items(), strict=True):
-        data = [res["summary"][f"g_{name}"] for name in ("al", "pl", "opt")]
-        ax.boxplot(data, whis=(5, 95), showfliers=False)
-        ax.set_xticks([1, 2, 3], ["AL", "PL", "OPT"])
+        data = [res["summary"][f"g_{name.lower()}"] for name in names]
+        boxes = ax.boxplot(
+            data,
+            whis=(5, 95),
+            showfliers=False,
+            showmeans=True,
+            patch_artist=True,
+            medianprops={"color": "black"},
+            meanprops={"marker": "D", "markerfacecolor": "white", "markeredgecolor": "black"},
+        )
+        for box, name in zip(boxes["boxes"], names, strict=True):
+            box.set_facecolor(METHOD_COLOURS[name])
+            box.set_alpha(0.6)
+        ax.set_xticks([1, 2, 3], list(names))
         ax.set_title(f"evaluation policy {base}", fontsize=9)
-    axes[0][0].set_ylabel("obtained true generalisation error Ḡ")
+        ax.set_ylabel("true generalisation error Ḡ obtained")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3, axis="y")
+    trials = len(data[0])
+    fig.suptitle(
+        f"Ḡ obtained over T = {trials} trials: box = quartiles, line = median, "
+        "◇ = mean, whiskers = 5 % and 95 % quantiles",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -236,8 +292,10 @@ def main(argv=None) -> dict:
         )
     payload = {"args": dataclasses.asdict(args), "wall_seconds": wall, "results": results}
     (out / "one_step.json").write_text(json.dumps(payload))
-    plot_profiles(results, "g_true", "true generalisation error Ḡ", out / "fig3_true_error.png")
-    plot_profiles(results, "j_prime", "estimated error J'", out / "fig4_j_estimate.png")
+    fig3 = out / "fig3_true_error.png"
+    plot_profiles(results, "g_true", "true generalisation error Ḡ", fig3, obtained=True)
+    fig4 = out / "fig4_j_estimate.png"
+    plot_profiles(results, "j_prime", "reward-free estimate J'", fig4, obtained=False)
     plot_boxes(results, out / "fig5_obtained_error.png")
     print(f"wrote {out}/one_step.json and three figures")
     return payload

@@ -48,11 +48,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from _cli import (
+    LOGGERS,
     Interrupted,
     exit_interrupted,
     exit_store_error,
     field,
     first_line,
+    log_means,
+    make_logger,
     parse,
     raise_on_signals,
     stored_runs_error,
@@ -98,6 +101,9 @@ class Args:
     reward_free_workers: int = field(0, low=0)
     """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
     MultiSyncCollector; each steps its share of the CartPoles)"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
 
 
 def schedule_of(args: Args) -> tuple[int, ...]:
@@ -341,7 +347,8 @@ def plot(runs: dict, path: Path) -> None:
             ax.errorbar(
                 [it["iteration"] for it in its],
                 stats[:, 0],
-                yerr=stats[:, 1],
+                yerr=np.stack([np.minimum(stats[:, 1], stats[:, 0]), stats[:, 1]]),  # >= 0
+                color={"AL": "tab:red", "PL": "tab:blue"}[method],
                 marker="o",
                 capsize=3,
                 label=method,
@@ -349,8 +356,11 @@ def plot(runs: dict, path: Path) -> None:
         rule = "greedy" if key.endswith("greedy") else "ε-greedy"
         ax.set_title(f"{ENV_ID}: steps balanced by pi_(l+1) ({rule})", fontsize=9)
         ax.set_xlabel("iteration l (0: the initial policy)")
+        ax.set_ylabel("steps balanced")
+        ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("mean ± s.e. over trials")
+    trials = len(runs["AL"]["iterations"][0]["steps_balanced"])
+    fig.suptitle(f"mean over T = {trials} trials, bars ± 1 standard error of the mean", fontsize=10)
     axes[0].legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -418,6 +428,11 @@ def run_all(args: Args, out: Path) -> dict:
     (out / "gym_drop_in.json").write_text(json.dumps(payload))
     write_csv(runs, out / "gym_drop_in.csv")
     plot(runs, out / "performance.png")
+    logger = make_logger(args.logger, out, "gym_drop_in")
+    for method, run in runs.items():
+        for it in run["iterations"]:
+            curves = {k: it[k] for k in ("steps_balanced", "steps_balanced_greedy")}
+            log_means(logger, method, it["iteration"], curves)
     print(f"wrote {out}/gym_drop_in.json, gym_drop_in.csv and performance.png")
     return payload
 

@@ -43,6 +43,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
         description=first_line(__doc__),
         check=check,
         unavailable={
+            "logger": "nothing is learnt: it draws one episode",
             "trials": "it draws one noiseless episode",
             "seed": "the episode is noiseless: nothing is random",
             "out_dir": "this script writes one file: use --out FILE",
@@ -92,74 +93,108 @@ def arm_points(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     return np.array([shoulder, elbow, tip])[:, [0, 2]]
 
 
+def draw_scene(axis, model, qpos, times, sim, snapshot_ms: float) -> None:
+    """Ground, pin, arm snapshots (darker = later), the ball on the bat and its flight."""
+    axis.axhline(0.0, color="0.4", lw=1)
+    pin = model.geom("pin")
+    axis.add_patch(
+        plt.Rectangle((pin.pos[0] - pin.size[0], 0), 2 * pin.size[0], 2 * pin.size[2], color="0.5")
+    )
+    last_drawn = -np.inf
+    for q, t in zip(qpos, times, strict=True):
+        if t - last_drawn < snapshot_ms / 1e3 - 1e-9:
+            continue
+        last_drawn = t
+        pts = arm_points(model, q)
+        shade = 0.15 + 0.85 * t / times[-1]
+        axis.plot(pts[:2, 0], pts[:2, 1], color=plt.cm.Blues(shade), lw=2.5)
+        axis.plot(pts[1:, 0], pts[1:, 1], color=plt.cm.Oranges(shade), lw=2)
+    ball = np.array([q[2:5] for q in qpos])
+    on_plane = np.abs(ball[:, 1]) < 1e-3  # (a ball out of play is parked beside the plane)
+    axis.plot(ball[on_plane, 0], ball[on_plane, 2], "k.", ms=2, label="ball (simulated)")
+    axis.add_patch(
+        plt.Circle((ball[0, 0], ball[0, 2]), sim.ball_radius, fc="white", ec="k", zorder=5)
+    )
+    if sim.hit[0]:
+        launch = sim.launch[0]
+        p, v = launch[:3], launch[3:]
+        t_land = v[2] + np.sqrt(v[2] ** 2 + 2 * sim.gravity * (p[2] - sim.ball_radius))
+        ts = np.linspace(0.0, t_land / sim.gravity, 200)
+        flight_x, flight_z = p[0] + v[0] * ts, p[2] + v[2] * ts - 0.5 * sim.gravity * ts**2
+        axis.plot(flight_x, flight_z, "k--", lw=1.2, label="flight (closed form, no drag)")
+        axis.plot([p[0]], [p[2]], "k^", ms=6, label="launch")
+    axis.set_aspect("equal")
+    axis.set_xlabel("x (m)")
+    axis.set_ylabel("height z (m)")
+
+
+def draw_angles(axis, qpos, times, sequence: str, launch_ms: float | None) -> None:
+    """Joint angles over the episode, each control step shaded by its action."""
+    ms = 1e3 * np.asarray(times)
+    angles = np.array([q[:2] for q in qpos])
+    step_ms = 1e3 * CONTROL_DT
+    for t, a in enumerate(sequence):
+        colour = "0.88" if a == "0" else "lightyellow"
+        axis.axvspan(t * step_ms, (t + 1) * step_ms, color=colour, lw=0)
+        axis.text(
+            (t + 0.5) * step_ms,
+            0.97,
+            "cock" if a == "0" else "swing",
+            fontsize=6,
+            ha="center",
+            va="top",
+            transform=axis.get_xaxis_transform(),
+        )
+    axis.plot(ms, angles[:, 0], color="tab:blue", label="φ1 (shoulder, link 1)")
+    axis.plot(ms, angles[:, 1], color="tab:orange", label="φ2 (elbow, bat)")
+    for limit, colour in ((0.0, "tab:blue"), (np.pi / 4, "tab:blue"), (-np.pi / 4, "tab:orange")):
+        axis.axhline(limit, color=colour, ls=":", lw=0.8)
+    if launch_ms is not None:
+        axis.axvline(launch_ms, color="k", ls="--", lw=1, label="ball leaves the pin")
+    axis.set_xlim(0, len(sequence) * step_ms)
+    axis.set_xlabel("time (ms); shading: the action of each 75 ms control step")
+    axis.set_ylabel("joint angle (rad); dotted: limits")
+    axis.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, 0.72))
+
+
 def main(args: Args) -> Path:
     qpos, times, sim = simulate(args.sequence)
     model = sim.coarse_model
-    fig, (ax, ax_zoom) = plt.subplots(
-        1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [2.2, 1]}
-    )
-    launch = sim.launch[0]
+    fig = plt.figure(figsize=(12, 6.9))
+    grid = fig.add_gridspec(2, 2, height_ratios=[0.62, 1.45], width_ratios=[1, 1.25])
+    ax_flight = fig.add_subplot(grid[0, :])
+    ax_arm = fig.add_subplot(grid[1, 0])
+    ax_angles = fig.add_subplot(grid[1, 1])
     hit = bool(sim.hit[0])
-    for axis in (ax, ax_zoom):
-        axis.axhline(0.0, color="0.4", lw=1)
-        pin = model.geom("pin")
-        axis.add_patch(
-            plt.Rectangle(
-                (pin.pos[0] - pin.size[0], 0), 2 * pin.size[0], 2 * pin.size[2], color="0.5"
-            )
-        )
-        # arm snapshots
-        last_drawn = -np.inf
-        for q, t in zip(qpos, times, strict=True):
-            if t - last_drawn < args.snapshot_ms / 1e3 - 1e-9:
-                continue
-            last_drawn = t
-            pts = arm_points(model, q)
-            shade = 0.15 + 0.85 * t / times[-1]
-            axis.plot(pts[:2, 0], pts[:2, 1], color=plt.cm.Blues(shade), lw=2.5)
-            axis.plot(pts[1:, 0], pts[1:, 1], color=plt.cm.Oranges(shade), lw=2)
-        # ball while in the simulation (before it is parked beside the plane)
-        ball = np.array([q[2:5] for q in qpos])
-        on_plane = (
-            np.abs(ball[:, 1]) < 1e-3
-        )  # (interpolated records toward the parked ball leave it)
-        axis.plot(ball[on_plane, 0], ball[on_plane, 2], "k.", ms=2)
-        axis.add_patch(
-            plt.Circle((ball[0, 0], ball[0, 2]), sim.ball_radius, fc="white", ec="k", zorder=5)
-        )
-        if hit:
-            p, v = launch[:3], launch[3:]
-            t_land = v[2] + np.sqrt(v[2] ** 2 + 2 * sim.gravity * (p[2] - sim.ball_radius))
-            t_land /= sim.gravity
-            ts = np.linspace(0.0, t_land, 200)
-            axis.plot(
-                p[0] + v[0] * ts,
-                p[2] + v[2] * ts - 0.5 * sim.gravity * ts**2,
-                "r--",
-                lw=1.2,
-                label="flight (closed form)",
-            )
-            axis.plot([p[0]], [p[2]], "r^", ms=6, label="launch")
-        axis.set_aspect("equal")
-        axis.set_xlabel("x (m)")
-        axis.set_ylabel("z (m)")
     carry = sim.carry[0]
-    title = f"actions {args.sequence} (0 cock, 1 swing): "
+    for axis in (ax_flight, ax_arm):
+        draw_scene(axis, model, qpos, times, sim, args.snapshot_ms)
+    ball = np.array([q[2:5] for q in qpos])
+    moved = np.flatnonzero(np.linalg.norm(ball - ball[0], axis=1) > 1e-3)
+    launch_ms = 1e3 * times[moved[0]] if hit and len(moved) else None
+    draw_angles(ax_angles, qpos, times, args.sequence, launch_ms)
+
+    title = f"actions {args.sequence} (0 cock, 1 swing), one noiseless episode: "
     title += f"carry {carry:.2f} m" if hit else "no hit"
     if hit:
+        launch = sim.launch[0]
         speed = np.linalg.norm(launch[3:])
         angle = np.degrees(np.arctan2(launch[5], launch[3]))
-        title += f", launch {speed:.1f} m/s at {angle:.0f} deg"
-    ax.set_title(title)
-    ax.set_xlim(-1.0, max(2.0, sim.pin_xy[0] + carry + 0.5))
-    ax.set_ylim(-0.1, max(1.8, ax.get_ylim()[1]))
-    ax.legend(loc="upper right")
-    ax_zoom.set_xlim(-0.9, 0.9)
-    ax_zoom.set_ylim(-0.05, 1.6)
-    ax_zoom.set_title("arm (blue: link 1, orange: bat; darker = later)")
+        title += f", launch {speed:.1f} m/s at {angle:.0f}°"
+    fig.suptitle(title)
+    ax_flight.set_title("the whole flight", fontsize=9)
+    ax_flight.set_xlim(-1.0, max(2.0, sim.pin_xy[0] + carry + 0.8))
+    ax_flight.set_ylim(-0.1, max(1.8, ax_flight.get_ylim()[1]))
+    ax_flight.legend(loc="upper right", fontsize=8)
+    ax_arm.set_xlim(-0.9, 0.9)
+    ax_arm.set_ylim(-0.05, 1.6)
+    ax_arm.set_title(
+        f"the arm every {args.snapshot_ms:g} ms (blue: link 1, orange: bat; darker = later)",
+        fontsize=9,
+    )
+    ax_angles.set_title("joint angles", fontsize=9)
     fig.tight_layout()
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     print(f"{title}\nwrote {out}")

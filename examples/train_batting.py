@@ -14,7 +14,15 @@ Paper settings: 54 Gaussian centres on {0, π/4} × {-π, 0, π} × {-π/4, 0, �
 τ = 3π/2, 2 actions (B = 110), γ = 1, psi_hat of the single transition, λ = 1e-3, Z = 5,
 ε_l = 0.15 / l, candidates ε_l + (0, 0.15, 0.5, 0.85), θ_0 = 1, N = 10 steps.
 
-Defaults (about a minute on 2 CPU cores): 8 trials, the decreasing schedule, all 7 iterations.
+Defaults (about a minute on 2 CPU cores): 32 trials, the decreasing schedule, all 7 iterations,
+AL and PL, one process (MuJoCo steps its batch on every core). Its last lines say what it found:
+AL and PL at l = 7 (mean ± standard error over the trials), their paired difference and t-test,
+and the share of trials scoring 0. The figure (``fig10_performance.png``) shows the score per
+iteration for each method (colour) and schedule (line style) with error bars of one standard
+error of the mean over the trials, the reference optimum (the best open-loop action sequence,
+examples/batting_reference.py) and the learner's ceiling with the paper's basis
+(benchmarks/batting_ceiling.py) as horizontal lines, and, beside it, the paired difference
+AL − PL per iteration.
 
     python examples/train_batting.py
 
@@ -68,11 +76,14 @@ from dataclasses import dataclass
 
 from _cli import (
     BACKENDS,
+    LOGGERS,
     Interrupted,
     exit_interrupted,
     exit_store_error,
     field,
     first_line,
+    log_means,
+    make_logger,
     parse,
     raise_on_signals,
     stored_runs_error,
@@ -83,7 +94,7 @@ from _cli import (
 class Args:
     """Command-line arguments of the batting experiment."""
 
-    trials: int = field(8, low=1)
+    trials: int = field(32, low=1)
     """T, independent trials, all run as one batch (the paper: 500)"""
     schedule: str = field("decreasing", choices=("decreasing", "fixed", "both"))
     """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
@@ -125,6 +136,9 @@ class Args:
     """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
     ray_cpus: int = field(0, low=0)
     """CPUs of a local Ray instance (0: all)"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
 
 
 def check(args: Args) -> str | None:
@@ -142,8 +156,8 @@ def parse_args(argv=None) -> Args:
         Args,
         argv,
         description=first_line(__doc__),
-        epilog="defaults: 8 trials, decreasing schedule, 7 iterations (about a minute on 2 "
-        "cores). The paper's run: --trials 500 --schedule both",
+        epilog="defaults: 32 trials, decreasing schedule, 7 iterations (about a minute on 2 "
+        "cores). The paper's run: --trials 500 --schedule both --backend processes --chunks 32",
         check=check,
     )
 
@@ -193,6 +207,11 @@ MODES = {"active": "AL", "passive": "PL"}
 PER_TRIAL = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")  # [L][T] lists
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
+# Horizontal lines of the figure (scores of eq. 68, Σ carry over 20 episodes):
+REFERENCE_OPTIMUM = 20 * 13.74  # the best open-loop sequence without noise, 13.74 m per episode
+# (examples/batting_reference.py); the best LSPI score with the paper's basis on abundant
+# random data (benchmarks/batting_ceiling.py; README "The learner's ceiling"):
+PAPER_BASIS_CEILING = 199.9
 
 
 def schedule_of(args: Args, name: str) -> list[int]:
@@ -423,27 +442,109 @@ def print_table(name: str, schedule: list[int], runs: dict, test: dict, trials: 
         print(f"{last} t = {test['t']:.3f}, p = {test['p']:.4f} (two-tailed)")
 
 
-def plot(results: dict, path: Path) -> None:
-    """Mean performance over iterations with standard-error bars (Figure 10)."""
-    fig, ax = plt.subplots(figsize=(5.5, 4))
-    colors = {"decreasing": "tab:blue", "fixed": "tab:red"}
+def print_findings(results: dict, args: Args) -> None:
+    """The last lines: what this run found, and how to run the paper-size experiment."""
+    print(
+        f"\nFound ({args.trials} trials, paired seeds, score of eq. 68 at l = {args.iterations}; "
+        f"reference optimum {REFERENCE_OPTIMUM:.0f}, "
+        f"paper-basis ceiling {PAPER_BASIS_CEILING:.0f}):"
+    )
     for name, res in results.items():
-        for mode, style in (("active", "-"), ("passive", ":")):
-            perf = np.asarray(res["runs"][mode]["performance"], dtype=np.float64)  # [L, T]
+        al, pl = (np.asarray(res["runs"][m]["performance"][-1]) for m in MODES)
+        (a, a_se), (p, p_se), (d, d_se) = mean_se(al), mean_se(pl), mean_se(al - pl)
+        test = res["paired_t_test_last"]
+        if test["p"] is None:
+            verdict = "the paired t-test is undefined (no spread in the differences)"
+        else:
+            verdict = (
+                f"{'AL' if d > 0 else 'PL'} better at the 5 % level"
+                if test["p"] < 0.05
+                else "no difference at the 5 % level"
+            )
+            verdict += f" (t = {test['t']:.2f}, p = {test['p']:.3g})"
+        print(
+            f"  {name}: AL {a:.1f} ± {a_se:.1f}, PL {p:.1f} ± {p_se:.1f} (s.e. over trials); "
+            f"AL − PL {d:+.1f} ± {d_se:.1f}: {verdict}; trials scoring 0: AL "
+            f"{(al == 0).mean():.0%}, PL {(pl == 0).mean():.0%}"
+        )
+    print("The paper-size experiment (500 trials, both schedules; see README for its wall time):")
+    print(
+        "  python examples/train_batting.py --trials 500 --schedule both --backend processes "
+        "--chunks 32"
+    )
+
+
+def plot(results: dict, path: Path) -> None:
+    """Figure 10: performance per iteration (left) and the paired difference AL − PL (right).
+
+    Error bars are the standard error of the mean over the T trials. One colour per method,
+    one line style per schedule; the reference optimum and the learner's measured ceiling
+    with the paper's basis are horizontal lines.
+    """
+    fig, (ax, diff_ax) = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = {"active": "tab:red", "passive": "tab:blue"}
+    styles = {"decreasing": "-", "fixed": "--"}
+    trials = None
+    for name, res in results.items():
+        runs = res["runs"]
+        for mode in MODES:
+            perf = np.asarray(runs[mode]["performance"], dtype=np.float64)  # [L, T]
+            trials = perf.shape[1]
             stats = np.array([mean_se(row) for row in perf])
             ax.errorbar(
-                np.arange(1, len(perf) + 1),
+                np.arange(1, len(perf) + 1) + (0.05 if mode == "passive" else 0.0),
                 stats[:, 0],
                 yerr=np.nan_to_num(stats[:, 1]),
-                linestyle=style,
-                marker="o" if mode == "active" else "s",
-                color=colors[name],
+                linestyle=styles[name],
+                marker="o",
+                markersize=3,
+                color=colours[mode],
                 capsize=3,
-                label=f"{MODES[mode]} ({name})",
+                label=f"{MODES[mode]}, {name}",
             )
-    ax.set_xlabel("iteration l")
-    ax.set_ylabel("performance: Σ carry over 20 test episodes (m)")
-    ax.legend()
+        diff = np.asarray(runs["active"]["performance"]) - np.asarray(
+            runs["passive"]["performance"]
+        )
+        stats = np.array([mean_se(row) for row in diff])
+        diff_ax.errorbar(
+            np.arange(1, len(diff) + 1),
+            stats[:, 0],
+            yerr=np.nan_to_num(stats[:, 1]),
+            linestyle=styles[name],
+            marker="o",
+            markersize=3,
+            color="black",
+            capsize=3,
+            label=name,
+        )
+    ax.axhline(REFERENCE_OPTIMUM, color="green", linewidth=1)
+    ax.text(
+        1,
+        REFERENCE_OPTIMUM,
+        "reference optimum (best open-loop sequence)",
+        va="bottom",
+        fontsize=7,
+        color="green",
+    )
+    ax.axhline(PAPER_BASIS_CEILING, color="gray", linewidth=1, linestyle="-.")
+    ax.text(
+        1,
+        PAPER_BASIS_CEILING,
+        "ceiling: LSPI, paper's basis, abundant random data",
+        va="bottom",
+        fontsize=7,
+        color="gray",
+    )
+    ax.set_ylim(bottom=0, top=REFERENCE_OPTIMUM * 1.08)
+    ax.set_xlabel("iteration l (performance of pi_{l+1})")
+    ax.set_ylabel("Σ carry over 20 test episodes (m), eq. 68")
+    ax.set_title(f"Figure 10: mean ± s.e. of the mean over T = {trials} trials", fontsize=9)
+    ax.legend(fontsize=7, loc="lower right")
+    diff_ax.axhline(0.0, color="gray", linewidth=1)
+    diff_ax.set_xlabel("iteration l")
+    diff_ax.set_ylabel("AL − PL, same trial (paired), m")
+    diff_ax.set_title(f"paired difference AL − PL: mean ± s.e. over T = {trials}", fontsize=9)
+    diff_ax.legend(fontsize=7, title="schedule", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -560,9 +661,17 @@ def run_all(args: Args, out: Path, ckpt_dir: Path, names, jobs, pieces) -> dict:
     payload["physics_audit"] = audit  # for benchmarks/bench_figure10.py; not in the JSON
     write_csv(results, out / "train_batting.csv")
     plot(results, out / "fig10_performance.png")
+    logger = make_logger(args.logger, out, "train_batting")
+    for name, res in results.items():
+        for run in res["runs"].values():
+            for i, perf in enumerate(run["performance"]):
+                curves = {"performance": perf, "hit_share": run["hit_share"][i]}
+                curves["rewarded_transitions"] = run["rewarded_transitions"][i]
+                log_means(logger, f"{name}/{run['method']}", i + 1, curves)
     steps = audit.steps
     print(f"\nphysics: {steps['coarse']:,} coarse + {steps['fine']:,} fine MuJoCo steps")
     print(f"wall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")
+    print_findings(results, args)
     return payload
 
 

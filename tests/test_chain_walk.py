@@ -37,7 +37,7 @@ from envs.chain_walk import (
 )
 
 S, A = N_STATES, 2
-BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # SPEC section 4
+BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # docs/chain_walk.md
 
 
 # ---------------------------------------------------------------------------------------------
@@ -192,7 +192,7 @@ def test_transition_tensor_matches_reference_and_boundaries():
         torch.testing.assert_close(P.sum(-1), torch.ones(S, A, dtype=torch.float64))
     P = chain_walk_transitions()
     L, R = 0, 1
-    # SPEC section 4 / paper section 3.5: P(s'=1|s=1,R) = 0.2, P(s'=2|s=1,R) = 0.8.
+    # docs/chain_walk.md / paper section 3.5: P(s'=1|s=1,R) = 0.2, P(s'=2|s=1,R) = 0.8.
     assert P[0, R, 0] == pytest.approx(0.2) and P[0, R, 1] == pytest.approx(0.8)
     assert P[0, L, 0] == pytest.approx(0.8) and P[0, L, 1] == pytest.approx(0.2)
     assert P[9, R, 9] == pytest.approx(0.8) and P[9, R, 8] == pytest.approx(0.2)

@@ -7,6 +7,7 @@ flag answer at once; each test runs the script as a user would, in a subprocess.
 from __future__ import annotations
 
 import ast
+import importlib.util
 import os
 import subprocess
 import sys
@@ -34,6 +35,7 @@ BAD_FLAG = {
     "gym_drop_in.py": ("--trials", "-3", "--trials must be >= 2"),
     "plot_batting_episode.py": ("--snapshot-ms", "-3", "--snapshot-ms must be > 0, got -3.0"),
     "train_batting.py": ("--trials", "-3", "--trials must be >= 1, got -3"),
+    "torchrl_pipeline.py": ("--episodes", "-3", "--episodes must be >= 1, got -3"),
 }
 
 
@@ -142,3 +144,13 @@ def test_out_dir_error_on_a_full_disk(tmp_path, monkeypatch):
 def test_device_syntax_is_checked_without_torch():
     assert _cli.device_syntax_error("cuda:1") is None
     assert "got 'gpu'" in _cli.device_syntax_error("gpu")
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("tensorboard") is not None, reason="tensorboard is installed here"
+)
+def test_a_logger_whose_package_is_missing_is_refused_before_any_work():
+    done, seconds = _run("chain_walk_api.py", "--logger", "tensorboard")
+    assert done.returncode == 2
+    assert "--logger tensorboard needs the tensorboard package" in done.stderr
+    assert seconds < HELP_SECONDS

@@ -130,13 +130,15 @@ def test_buffer_order_capacity_and_mismatch():
     assert torch.equal(buf.episodes()["observation"][2:], b["observation"])
     with pytest.raises(ValueError, match="capacity 5 episodes would be exceeded"):
         buf.extend(_good(2))
-    with pytest.raises(ValueError, match="N = 3 steps, got N = 4"):
-        buf.extend(_good(1, 4))
+    buf.extend(_good(1, 4))  # a longer episode: everything held is padded to N = 4, masked
+    held = buf.episodes()
+    assert held.shape == (5, 4) and buf.num_transitions == 16
+    assert not held["mask"][:4, 3].any() and held["mask"][4].all()
     with pytest.raises(ValueError, match="must not carry"):
         EpisodeBuffer(rewarded=False).extend(_good())
 
 
 def test_cat_episodes():
     assert cat_episodes([_good(2), _good(3)]).shape == (5, 3)
-    with pytest.raises(ValueError, match="different lengths"):
-        cat_episodes([_good(2, 3), _good(2, 4)])
+    joined = cat_episodes([_good(2, 3), _good(2, 4)])  # padded to the longest, masked
+    assert joined.shape == (4, 4) and int(joined["mask"].sum()) == 14

@@ -1,4 +1,4 @@
-"""psi_hat + weights + ridge on chain-walk samples against the exact model (SPEC section 4)."""
+"""psi_hat + weights + ridge on chain-walk samples against the exact model (docs/chain_walk.md)."""
 
 import pytest
 import torch

@@ -76,7 +76,7 @@ def test_chain_walk_api(tmp_path):
     out = _run(
         "chain_walk_api.py",
         *("--trials", "2", "--iterations", "2", "--test-episodes", "3", "--test-steps", "10"),
-        *("--out-dir", str(tmp_path)),
+        *("--out-dir", str(tmp_path), "--logger", "csv"),
     )
     assert "Paired two-tailed t-test" in out
     payload = _check_json(tmp_path / "chain_walk_api.json")
@@ -96,6 +96,11 @@ def test_chain_walk_api(tmp_path):
         for key in ("test_return", "exact_return", "percent_optimal"):
             assert math.isfinite(float(row[key]))
     _check_png(tmp_path / "fig8_performance.png")
+    # --logger csv: TorchRL's CSVLogger, one file per curve, one "step,value" row per iteration
+    curves = tmp_path / "logs" / "chain_walk_api" / "scalars"
+    curve = curves / "fixed" / "PL" / "percent_optimal.csv"
+    steps = [line.split(",")[0] for line in curve.read_text().splitlines()]
+    assert steps == ["0", "1", "2"]
 
 
 def test_gym_drop_in(tmp_path):
@@ -113,6 +118,21 @@ def test_gym_drop_in(tmp_path):
     assert len(rows) == 2 * 3 * 2  # methods × iterations (0..2) × trials
     assert all(math.isfinite(float(row["steps_balanced"])) for row in rows)
     _check_png(tmp_path / "performance.png")
+
+
+def test_batting_reference(tmp_path):
+    out = tmp_path / "reference.json"
+    _run("batting_reference.py", "--episodes", "16", "--out", str(out))
+    payload = json.loads(out.read_text())
+    assert len(payload["reference_optimum"]["best_sequence"]) == 10
+    assert payload["random_policy"]["episodes"] == 16
+
+
+def test_plot_batting_episode(tmp_path):
+    out = tmp_path / "episode.png"
+    stdout = _run("plot_batting_episode.py", "--sequence", "0011111000", "--out", str(out))
+    assert "carry 13.74 m" in stdout
+    _check_png(out)
 
 
 # -- chunks of trials (torch_api/dispatch.py): the same numbers however the trials are split ----
@@ -169,6 +189,21 @@ def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp
     on_ray = json.loads((tmp_path / "chain_walk_api.json").read_text())
     assert _without_times(on_ray) == _without_times(chain_walk_one_chunk)
     _check_png(tmp_path / "fig8_performance.png")
+
+
+def test_torchrl_pipeline(tmp_path):
+    _run(
+        "torchrl_pipeline.py",
+        *("--iterations", "2", "--episodes", "2", "--reward-free-episodes", "1"),
+        *("--repeats", "1", "--steps", "20", "--test-episodes", "2"),
+        *("--out-dir", str(tmp_path)),
+    )
+    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+    history = payload["history"]
+    assert [h["iteration"] for h in history] == [1, 2]
+    assert all(len(h["j_mean"]) == 3 for h in history)  # two θ policies and the actor
+    assert history[-1]["rewarded_transitions"] == 2 * 2 * 20  # MountainCar: no early end here
+    assert all(math.isfinite(x) for x in _numbers(payload["history"]))
 
 
 # -- durable runs: a killed or interrupted example resumes to the uninterrupted numbers ----------

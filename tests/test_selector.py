@@ -134,8 +134,7 @@ def test_trial_chunks_give_the_same_j_as_one_batch():
             num_repeats=2,
             max_design_bytes=max_bytes,
         )
-        for c in cands:
-            c.generator.manual_seed(0)
+        torch.manual_seed(0)  # unseeded policies draw from torch's global generator
         return selector, selector.select(pi, cands)
 
     one_sel, one = select(2**40)

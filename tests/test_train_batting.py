@@ -186,32 +186,53 @@ def _running(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to find the workers")
-def test_sigterm_stops_with_one_line_and_workers_die_with_a_killed_parent(tmp_path):
-    """SIGTERM: the commit in flight completes, one line, exit 143, --resume finishes. SIGKILL
-    of the parent with --backend processes: its workers are gone within seconds."""
+def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
+    uninterrupted, tmp_path
+):
+    """A SIGKILL mid-run, then a resume stopped by SIGTERM (the commit in flight completes, one
+    line, exit 143), then a resume to the end: the uninterrupted run's numbers. SIGKILL of the
+    parent with --backend processes: its workers are gone within seconds."""
+    reference, proc = uninterrupted
+    assert proc.returncode == 0, proc.stderr[-3000:]
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    flags = [*TINY, "--out-dir", str(tmp_path)]
-    proc = subprocess.Popen(
-        [sys.executable, str(SCRIPT), *flags],
-        env=env,
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
     store = tmp_path / "checkpoints" / "decreasing_active.db"
-    deadline = time.monotonic() + 120
-    while not store.exists() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+
+    def start(*extra):
+        return subprocess.Popen(
+            [sys.executable, str(SCRIPT), *TINY, "--out-dir", str(tmp_path), *extra],
+            env=env,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    def once_storing(proc, seconds):
+        """Until ``proc`` holds the run's lock (its pid is in the lock file), then seconds."""
+        lock = Path(f"{store}.lock")
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if lock.exists() and f"pid {proc.pid} " in lock.read_text():
+                break
+            time.sleep(0.05)
+        time.sleep(seconds)
+
+    killed = start()
+    once_storing(killed, 0.5)
+    killed.kill()
+    killed.communicate(timeout=60)
+    stopped = start("--resume")
+    once_storing(stopped, 1.0)
+    stopped.send_signal(signal.SIGTERM)
+    _, err = stopped.communicate(timeout=120)
+    assert stopped.returncode == 128 + signal.SIGTERM, err[-3000:]
     last = err.strip().splitlines()[-1]  # (after the progress bars)
     assert "Traceback" not in err and last.startswith("interrupted at iteration "), err[-3000:]
     assert last.endswith(f"episodes stored in {tmp_path / 'checkpoints'}; continue with --resume")
     done = run_script(tmp_path, "--resume")
     assert done.returncode == 0, done.stderr[-3000:]
+    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
+    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
 
     out = tmp_path / "processes"
     parent = subprocess.Popen(
@@ -240,7 +261,7 @@ def test_sigterm_stops_with_one_line_and_workers_die_with_a_killed_parent(tmp_pa
     assert workers, "no worker processes found"
     parent.kill()
     parent.wait(timeout=30)
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60  # (a worker still importing torch dies once it is done)
     while any(_running(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_running(w) for w in workers), "workers outlived their killed parent"

@@ -8,7 +8,19 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-__all__ = ["GaussianActionBasis"]
+__all__ = ["GaussianActionBasis", "as_features"]
+
+
+def as_features(obs: torch.Tensor) -> torch.Tensor:
+    """Observations as float features ``[..., d]``: integer observations (FrozenLake's state
+    index ``[..., 1]``, a one-hot ``int64`` vector) are cast to the default float dtype.
+
+    (Scalar observations ``[...]`` get their feature dim where the batch dims are known: in
+    the policies' ``forward`` and in :mod:`torch_api.data`.)
+    """
+    if not (obs.is_floating_point() or obs.is_complex()):
+        obs = obs.to(torch.get_default_dtype())
+    return obs
 
 
 class GaussianActionBasis(nn.Module):
@@ -16,7 +28,7 @@ class GaussianActionBasis(nn.Module):
 
     ``k_c(s) = exp(-||s - c_c||² / (2 τ²))``. Each action owns one block of ``C + 1`` entries,
     so ``B = A (C + 1)``. The paper interleaves the actions; this module lays the blocks out one
-    action after another, which changes nothing downstream (SPEC section 3).
+    action after another, which changes nothing downstream (docs/algorithm.md).
 
     Any module with the same two methods (``phi_all`` and ``phi``) and the attributes
     ``num_features`` and ``num_actions`` can stand in for this one; ``q_values`` and
@@ -66,7 +78,9 @@ class GaussianActionBasis(nn.Module):
         """State features ``[k_1(s), ..., k_C(s), 1]``: obs ``[..., d]`` -> ``[..., C + 1]``.
 
         Inside :meth:`reuse_kernels` the result for a given tensor object is computed once.
+        Integer observations are cast to float (:func:`as_features`).
         """
+        obs = as_features(obs)
         if obs.shape[-1] != self.obs_dim:
             raise ValueError(
                 f"obs must have a trailing dimension of {self.obs_dim}, "
@@ -118,6 +132,7 @@ class GaussianActionBasis(nn.Module):
 
     def phi(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Basis of the taken action: obs ``[..., d]``, action ``[...]`` (index) -> ``[..., B]``."""
+        obs = as_features(obs)
         action = torch.as_tensor(action, device=obs.device)
         if action.shape != obs.shape[:-1]:
             raise ValueError(

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from tensordict import TensorDictBase
 
-from torch_api.data import REWARD_KEY
+from torch_api.data import REWARD_KEY, taken_sample_probs
 from torch_api.psi import PsiHat
 from torch_api.weights import effective_sample_size, per_decision_weights
 
@@ -95,9 +95,7 @@ def build_design(
             flat(mask, 0),
         )
     weights = per_decision_weights(
-        taken_probs(target, episodes["action"]),
-        taken_probs(episodes["sample_probs"], episodes["action"]).to(torch.float64),
-        mask,
+        taken_probs(target, episodes["action"]), taken_sample_probs(episodes), mask
     )
     flat_mask = flat(mask, 0)
     flat_weights = flat(weights, 0)

@@ -82,15 +82,15 @@ def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
-def _init_worker(threads: int) -> None:
-    die_with_parent()
+def _init_worker(threads: int, parent: int) -> None:
+    die_with_parent(parent)
     torch.set_num_threads(threads)
 
 
 def _guarded_call(fn, pid: int, host: str, chunk):
     """``fn(chunk)`` as a Ray task that dies with the driver process ``pid`` on ``host``."""
     if socket.gethostname() == host:
-        die_with_parent(pid)
+        die_with_parent(pid, direct=False)
     return fn(chunk)
 
 
@@ -155,7 +155,7 @@ def run_chunks(
             max_workers=min(workers, len(chunks)),
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(threads_per_worker(workers),),
+            initargs=(threads_per_worker(workers), os.getpid()),
         )
         try:
             results = list(pool.map(fn, chunks))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import numbers
 import os
@@ -14,15 +15,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
+from torch_api.actions import ActionEncoding
 from torch_api.data import (
     EnvPerBatch,
     EpisodeBuffer,
     collect_episodes,
+    collect_with_collector,
     seed_env,
     validate_episodes,
 )
@@ -39,6 +42,7 @@ from torch_api.store import CorruptRunError, RunStore, StoredRun
 
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
+_log = logging.getLogger(__name__)
 _STREAMS = {
     "policy": 0,
     "reward_free_env": 1,
@@ -271,6 +275,21 @@ class ActivePolicyIteration:
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
             must then be a picklable callable ``batch_size -> env``.
+        initial_episodes: a warm start: rewarded episodes already bought (with any sampling
+            policy that recorded its probabilities), stored first in ``api.rewarded`` and used
+            by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
+            ``Collector``'s batch, or a list of consecutive batches whose cut trajectories are
+            joined; ``env.rollout`` output) or the library's format
+            (:meth:`~torch_api.data.EpisodeBuffer.extend`). With ``num_trials`` every trial
+            starts from the same episodes.
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
+            ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
+            ``StepCounter(max_steps=N)``): the rewarded and the reward-free episodes are then
+            read from it (:func:`~torch_api.data.collect_with_collector`) instead of from
+            ``env.rollout`` (the default; faster on batched envs). The collector's env is then
+            seeded by the user, not by ``seed``; ``env`` still names the env (its action
+            encoding). Not with ``num_trials``.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -317,6 +336,8 @@ class ActivePolicyIteration:
         resume: bool = False,
         overwrite: bool = False,
         rewarded_slice: str = "all",
+        initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
+        collector: Callable | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -357,6 +378,9 @@ class ActivePolicyIteration:
             raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
         if not candidate_offsets:
             raise ValueError("candidate_offsets must not be empty")
+        if collector is not None and (num_trials is not None or reward_free_workers):
+            raise ValueError("collector works without num_trials and reward_free_workers")
+        self.collector = collector
         if num_trials is not None and isinstance(env, EnvBase):
             raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
@@ -406,7 +430,16 @@ class ActivePolicyIteration:
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.rewarded_slice = rewarded_slice
         self.iteration = 0  # iterations completed
-        self.rewarded = EpisodeBuffer(rewarded=True, capacity=sum(schedule))  # per trial
+        warm = _warm_start(initial_episodes, self.trial_dims)
+        self.rewarded = EpisodeBuffer(  # per trial
+            rewarded=True, capacity=sum(schedule) + (0 if warm is None else warm.shape[-2])
+        )
+        if warm is not None:
+            self.rewarded.extend(warm)
+        self._warm = warm
+        self._action_encoding = None  # the env's action encoding, read from its first instance
+        if isinstance(env, EnvBase):
+            self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
         num_candidates = len(
             SOFTMAX_CANDIDATE_SCALES if improvement == "softmax" else self.candidate_offsets
         )
@@ -428,6 +461,7 @@ class ActivePolicyIteration:
             generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
+            collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
         self.store: RunStore | None = None
@@ -464,6 +498,7 @@ class ActivePolicyIteration:
             theta=theta,
             generator=self.generator,
             tie_break=self.tie_break,
+            action_spec=self._action_encoding,
             **rule,
         )
 
@@ -536,7 +571,11 @@ class ActivePolicyIteration:
                 torch.Generator().manual_seed(s)
                 for s in self.block_seeds(iteration, "reward_free_policy")
             ]
-        seed_env(self._env_for(trials * num_episodes), *self._env_seeds(iteration, "rewarded_env"))
+        env = self._env_for(trials * num_episodes)
+        if self._action_encoding is None:  # the policies write actions in the env's encoding
+            self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
+            self.policy = self.policy.with_action_spec(self._action_encoding)
+        seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
             self.selector.seed_env(batch, *self._env_seeds(iteration, "reward_free_env"))
@@ -630,7 +669,7 @@ class ActivePolicyIteration:
         chosen = selection["chosen"]
         where = f" (stored in {self.checkpoint_path})" if self.checkpoint_path else ""
         try:
-            bought = collect_episodes(
+            bought = self._collect(
                 self._env_for(rows),
                 self._with_rule(selection["sampling_rule"]),  # one candidate per trial
                 num_episodes=len(episodes),
@@ -675,6 +714,13 @@ class ActivePolicyIteration:
                 return f" of trial {t}"
         return ""
 
+    def _collect(self, env: EnvBase, policy, **kwargs):
+        """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
+        if self.collector is None:
+            return collect_episodes(env, policy, **kwargs)
+        kwargs.pop("validate", None)  # (the collector's episodes are checked as they come)
+        return collect_with_collector(self.collector, policy, **kwargs)
+
     def step(self) -> IterationRecord:
         """Run one iteration of Algorithm 1 and return its record."""
         if self.iteration >= len(self.schedule):
@@ -715,6 +761,14 @@ class ActivePolicyIteration:
             self._on_commit()
         self.iteration = l_now
         self.history.append(record)
+        _log.info(
+            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
+            self.mode,
+            l_now,
+            len(self.schedule),
+            seconds,
+            self.rewarded_transitions,
+        )
         if self.iteration == len(self.schedule):
             self.close()
         return record
@@ -752,6 +806,9 @@ class ActivePolicyIteration:
             "env": fingerprint(self._env_for(trials * self.schedule[0])),
             "keep_reward_free": self.keep_reward_free,
             "rewarded_slice": self.rewarded_slice,
+            "initial_episodes": None
+            if self._warm is None
+            else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
         }
         return config
 
@@ -769,6 +826,8 @@ class ActivePolicyIteration:
         if sorted(stored.records) != list(range(1, done + 1)) or done > len(self.schedule):
             raise CorruptRunError(f"the run {path} holds records {sorted(stored.records)}")
         rewarded = EpisodeBuffer(rewarded=True, capacity=self.rewarded.capacity)
+        if self._warm is not None:  # the warm start comes first, as in a fresh run
+            rewarded.extend(self._warm)
         reward_free = EpisodeBuffer(rewarded=False, capacity=self.reward_free.capacity)
         free_transitions = 0
         selection, partial = None, {}
@@ -868,3 +927,17 @@ class ActivePolicyIteration:
             self.step()
         self.close()  # (a resumed run that was complete already)
         return self.history
+
+
+def _warm_start(data, trial_dims: tuple[int, ...]) -> TensorDictBase | None:
+    """``initial_episodes`` in the library's format ``[*T, M, N]`` (None: no warm start)."""
+    if data is None:
+        return None
+    batches = [data] if isinstance(data, TensorDictBase) else list(data)
+    if not batches:
+        return None
+    joined = EpisodeBuffer(rewarded=True, capacity=sum(b.numel() for b in batches))
+    for batch in batches:  # consecutive collector batches: cut trajectories are joined
+        joined.extend(batch)
+    episodes = joined.episodes()
+    return episodes.expand(*trial_dims, *episodes.shape).clone() if trial_dims else episodes

@@ -28,14 +28,19 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def die_with_parent(parent: int | None = None) -> None:
-    """End this process (SIGKILL) as soon as process ``parent`` (default: the parent) is gone.
+def die_with_parent(parent: int | None = None, *, direct: bool = True) -> None:
+    """End this process (SIGKILL) as soon as process ``parent`` is gone.
 
-    On Linux the kernel sends the signal (``PR_SET_PDEATHSIG``); a daemon thread checks every
-    ``WATCH_SECONDS`` as well (other systems, or a parent that is not the direct one).
+    Args:
+        parent: the pid to outlive not (default: the current parent). Give the pid the parent
+            had when it started this process: if it died before this call, this process is
+            ended at once.
+        direct: ``parent`` is this process's parent. On Linux the kernel then sends SIGKILL
+            when it dies (``PR_SET_PDEATHSIG``); a daemon thread also checks ``os.getppid()``
+            every ``WATCH_SECONDS``. With ``direct=False`` (a Ray task and the driver) the
+            thread checks that ``parent`` is alive.
     """
-    direct = parent is None
-    parent = os.getppid() if parent is None else parent
+    parent = os.getppid() if parent is None else int(parent)
     if direct:
         try:
             libc = ctypes.CDLL(None, use_errno=True)
@@ -43,11 +48,15 @@ def die_with_parent(parent: int | None = None) -> None:
         except (OSError, AttributeError):  # not Linux: the watchdog below does it
             pass
 
+    def there() -> bool:
+        return os.getppid() == parent if direct else _alive(parent)
+
+    if not there():
+        os.kill(os.getpid(), signal.SIGKILL)  # the parent is gone already
+
     def watch() -> None:
-        while (os.getppid() == parent) if direct else _alive(parent):
+        while there():
             time.sleep(WATCH_SECONDS)
         os.kill(os.getpid(), signal.SIGKILL)
 
-    if (os.getppid() != parent) if direct else not _alive(parent):
-        os.kill(os.getpid(), signal.SIGKILL)  # the parent is gone already
     threading.Thread(target=watch, name="die-with-parent", daemon=True).start()

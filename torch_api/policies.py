@@ -7,12 +7,17 @@ so that importance weights can be computed later against any other policy.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from torch_api.actions import ActionEncoding
+from torch_api.basis import as_features
 
 __all__ = [
     "ActionProbsPolicy",
@@ -99,7 +104,7 @@ def _check_epsilon(epsilon) -> torch.Tensor:
     eps = torch.as_tensor(epsilon, dtype=torch.float64)
     if not torch.isfinite(eps).all() or (eps < 0).any():
         raise ValueError(f"epsilon must be >= 0, got {epsilon}")
-    return eps.clamp(max=1.0)  # ε is capped at 1 (uniform)
+    return eps.clamp(max=1.0)  # ε is capped at 1, the uniform policy (docs/algorithm.md)
 
 
 def epsilon_greedy_probs(q: torch.Tensor, epsilon, tie_break: str = "uniform") -> torch.Tensor:
@@ -133,12 +138,23 @@ def softmax_probs(q: torch.Tensor, beta) -> torch.Tensor:
     return torch.softmax(q.to(torch.float64) / beta_t, dim=-1)
 
 
+_GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
+
+
 class ActionProbsPolicy(TensorDictModuleBase):
     """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
 
-    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, samples an
-    action with the policy's own ``torch.Generator`` and writes ``action`` (an index, or one-hot
-    with ``one_hot=True``) and ``sample_probs`` (the whole distribution ``[..., A]``, float64).
+    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, draws an
+    action and writes ``action`` in the env's encoding and ``sample_probs`` (the distribution
+    the action was drawn from, ``[..., A]``, float64).
+
+    TorchRL's conventions: under ``set_exploration_type(ExplorationType.RANDOM)`` (a
+    ``Collector``'s default) or with no exploration type set, the action is sampled from
+    ``pi(·|s)``; under ``DETERMINISTIC``, ``MODE`` (or ``MEAN``) it is the mode of ``pi(·|s)``
+    (the greedy action; the lowest index among equal probabilities), and ``sample_probs`` is
+    then that one-hot distribution, the one the action was really drawn from. The draw uses the
+    policy's ``generator`` if it has one, else torch's global generator (so ``torch.manual_seed``
+    governs an unseeded policy, as it does TorchRL's actors).
     """
 
     def __init__(
@@ -146,6 +162,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
         *,
         num_actions: int,
         one_hot: bool = False,
+        action_spec=None,
         generator: torch.Generator | None = None,
         observation_key="observation",
         action_key="action",
@@ -154,7 +171,8 @@ class ActionProbsPolicy(TensorDictModuleBase):
         super().__init__()
         self.num_actions = int(num_actions)
         self.one_hot = one_hot
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.action_encoding = _encoding(action_spec, self.num_actions, one_hot)
+        self.generator = generator
         self.observation_key = observation_key
         self.action_key = action_key
         self.probs_key = probs_key
@@ -169,6 +187,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
     def _io_kwargs(self) -> dict:
         return {
             "one_hot": self.one_hot,
+            "action_spec": self.action_encoding,
             "generator": self.generator,
             "observation_key": self.observation_key,
             "action_key": self.action_key,
@@ -214,8 +233,9 @@ class ActionProbsPolicy(TensorDictModuleBase):
         """
         shape = probs.shape[:-1]
         if self.block_generators is None:
+            device = "cpu" if self.generator is None else self.generator.device
             uniform = torch.rand(
-                shape, generator=self.generator, dtype=torch.float64, device=self.generator.device
+                shape, generator=self.generator, dtype=torch.float64, device=device
             )
         else:
             rows, blocks = shape.numel(), len(self.block_generators)
@@ -231,14 +251,46 @@ class ActionProbsPolicy(TensorDictModuleBase):
         cdf = probs.cumsum(-1)
         return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
 
+    def with_action_spec(self, action_spec) -> ActionProbsPolicy:
+        """The same policy (same parameters and random streams) writing actions in the encoding
+        of ``action_spec`` (a TorchRL spec or an :class:`~torch_api.actions.ActionEncoding`)."""
+        encoding = _encoding(action_spec, self.num_actions, self.one_hot)
+        if encoding == self.action_encoding:
+            return self
+        other = copy.copy(self)  # shares θ, the basis and the generators
+        other.action_encoding = encoding
+        other.one_hot = encoding.one_hot
+        return other
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        probs = self.action_probs(tensordict.get(self.observation_key))
-        action = self.sample(probs)
-        if self.one_hot:
-            action = torch.nn.functional.one_hot(action, self.num_actions).to(torch.bool)
-        tensordict.set(self.action_key, action)
+        obs = tensordict.get(self.observation_key)
+        if obs.ndim == tensordict.batch_dims:  # scalar observations (a state index)
+            obs = obs.unsqueeze(-1)
+        probs = self.action_probs(obs)
+        if exploration_type() in _GREEDY_EXPLORATION:
+            index = probs.argmax(-1)
+            probs = torch.nn.functional.one_hot(index, probs.shape[-1]).to(probs.dtype)
+        else:
+            index = self.sample(probs)
+        tensordict.set(self.action_key, self.action_encoding.encode(index))
         tensordict.set(self.probs_key, probs)
         return tensordict
+
+
+def _encoding(action_spec, num_actions: int, one_hot: bool) -> ActionEncoding:
+    """The encoding of ``action_spec`` (a spec or an encoding), else of the ``one_hot`` flag."""
+    if action_spec is None:  # one-hot actions as TorchRL's OneHot spec writes them by default
+        return ActionEncoding(num_actions, one_hot, torch.bool if one_hot else torch.int64)
+    if isinstance(action_spec, ActionEncoding):
+        encoding = action_spec
+    else:
+        batch = tuple(action_spec.shape[:-1])
+        encoding = ActionEncoding.from_spec(action_spec, batch)
+    if encoding.num_actions != num_actions:
+        raise ValueError(
+            f"action_spec has {encoding.num_actions} actions but the policy {num_actions}"
+        )
+    return encoding
 
 
 class TabularPolicy(ActionProbsPolicy):
@@ -317,9 +369,10 @@ def _check_distribution(probs: torch.Tensor, name: str) -> None:
 class LinearQPolicy(ActionProbsPolicy):
     """ε-greedy, greedy or softmax policy over ``Q̂ = θᵀ phi`` as a TensorDict module.
 
-    Reads ``observation`` and writes ``action`` (an index, or one-hot with ``one_hot=True``) and
-    ``sample_probs`` (the full distribution ``[..., A]``, float64) so that the episode can be
-    importance-weighted later. Sampling uses the policy's own ``torch.Generator``.
+    Reads ``observation`` and writes ``action`` (in the encoding of ``action_spec``: an index,
+    or one-hot) and ``sample_probs`` (the full distribution ``[..., A]``, float64) so that the
+    episode can be importance-weighted later. Sampling follows TorchRL's exploration type and
+    uses the policy's own ``torch.Generator`` if given (see :class:`ActionProbsPolicy`).
 
     Args:
         basis: module with ``phi_all(obs [..., d]) -> [..., A, B]`` and ``num_features``.
@@ -332,8 +385,12 @@ class LinearQPolicy(ActionProbsPolicy):
             the maximum: ``"uniform"`` (equal parts; with θ = 0, or θ = 1 on a basis with the
             same features per action, the policy is uniform) or ``"lowest"`` (all to the lowest
             index). See :func:`greedy_probs`.
-        one_hot: write one-hot actions (for envs with a ``OneHot`` action spec).
-        generator: random stream for sampling (default: a fresh CPU generator seeded 0).
+        one_hot: write one-hot actions (``bool``, TorchRL's ``OneHot`` default) where no
+            ``action_spec`` is given.
+        action_spec: the env's action spec (``env.action_spec``): actions are written in its
+            encoding (one-hot or index) and dtype. :func:`~torch_api.data.collect_episodes`
+            sets it from the env it collects on.
+        generator: random stream for sampling (default: torch's global generator).
         observation_key, action_key, probs_key: tensordict keys.
 
     Example:
@@ -356,6 +413,7 @@ class LinearQPolicy(ActionProbsPolicy):
         beta: float | torch.Tensor | None = None,
         tie_break: str = "uniform",
         one_hot: bool = False,
+        action_spec=None,
         generator: torch.Generator | None = None,
         observation_key="observation",
         action_key="action",
@@ -384,6 +442,7 @@ class LinearQPolicy(ActionProbsPolicy):
         super().__init__(
             num_actions=basis.num_actions,
             one_hot=one_hot,
+            action_spec=action_spec,
             generator=generator,
             observation_key=observation_key,
             action_key=action_key,
@@ -397,7 +456,7 @@ class LinearQPolicy(ActionProbsPolicy):
 
     def q_values(self, obs: torch.Tensor) -> torch.Tensor:
         """``Q̂(s, ·)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64."""
-        obs = obs.to(torch.float64)
+        obs = as_features(obs).to(torch.float64)
         theta = self.theta.to(obs.device)  # θ follows the observations (env on CPU or GPU)
         if hasattr(self.basis, "q_values"):  # block-structured fast path
             return self.basis.q_values(obs, theta)

@@ -149,10 +149,12 @@ def psi_hat(
             mean and their own rows are zero.
 
     Returns:
-        ``[..., n, B]``.
+        ``[..., n, B]`` in float64 (the dtype of the weights and of the solve downstream),
+        whatever the dtype of ``phi``.
     """
     if not 0 < gamma <= 1:
         raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+    phi, next_features = phi.to(torch.float64), next_features.to(torch.float64)
     if next_features.shape != phi.shape:
         raise ValueError(
             f"next_features must have shape {tuple(phi.shape)}, got {tuple(next_features.shape)}"

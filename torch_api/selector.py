@@ -10,7 +10,14 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.data import EnvPerBatch, collect_episodes, seed_env
+from torch_api.data import (
+    EnvPerBatch,
+    as_episodes,
+    collect_episodes,
+    collect_with_collector,
+    joinable,
+    seed_env,
+)
 from torch_api.design import build_design
 from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import ActionProbsPolicy
@@ -30,6 +37,7 @@ _STATE_ACTION_KEYS = (
     "observation",
     "action",
     "sample_probs",
+    "sample_log_prob",
     ("next", "observation"),
     ("next", "terminated"),
     "mask",
@@ -60,8 +68,10 @@ def j_values(
 
     Args:
         candidate_episodes: reward-free episodes ``[..., K, M, N]``.
-        earlier_episodes: earlier sampling sets ``[M', N]`` (rewards, if any, are ignored) or
-            None in the first iteration.
+        earlier_episodes: earlier sampling sets ``[M', N']`` (rewards, if any, are ignored) or
+            None in the first iteration; TorchRL data as TorchRL produces it (a ``Collector``'s
+            batch, ``env.rollout`` output) is converted (:func:`~torch_api.data.as_episodes`).
+            Episodes of another length than the candidates' are padded (masked).
         policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
             ``[...]``.
         psi: the psi_hat module.
@@ -76,15 +86,13 @@ def j_values(
             f"got {tuple(candidate_episodes.shape)}"
         )
     cand = candidate_episodes.select(*_STATE_ACTION_KEYS, strict=False)
-    *lead, num_candidates, num_episodes, num_steps = cand.shape
     prev = None
+    if earlier_episodes is not None:
+        earlier_episodes = as_episodes(earlier_episodes, rewarded=False)
     if earlier_episodes is not None and earlier_episodes.shape[0] > 0:
-        if earlier_episodes.shape[-1] != num_steps:
-            raise ValueError(
-                f"earlier episodes have N = {earlier_episodes.shape[-1]} steps, candidates "
-                f"N = {num_steps}"
-            )
-        prev = earlier_episodes.select(*cand.keys(include_nested=True, leaves_only=True))
+        prev = earlier_episodes.select(*_STATE_ACTION_KEYS, strict=False)
+        cand, prev = joinable([cand, prev])
+    *lead, num_candidates, num_episodes, num_steps = cand.shape
     # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
     # the collapse warning is for fits on rewarded data, not for this reward-free pool.
     if psi.row_local:
@@ -233,6 +241,11 @@ class SamplingPolicySelector:
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`; for slow
             environments); ``env`` must then be a picklable callable ``batch_size -> env``,
             seeded through :meth:`seed_env`.
+        collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
+            (:func:`~torch_api.data.collect_with_collector`): each candidate's ``Z·M``
+            reward-free episodes are then read from it, candidate by candidate, instead of from
+            ``env.rollout`` (the default, faster on batched envs). Without per-trial
+            parameters only.
 
     Example:
         >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
@@ -262,6 +275,7 @@ class SamplingPolicySelector:
         device: torch.device | str | None = None,
         max_design_bytes: int = 2**29,
         num_workers: int = 0,
+        collector: Callable | None = None,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -286,6 +300,9 @@ class SamplingPolicySelector:
         if num_workers and not self._envs.is_factory:
             raise ValueError("num_workers needs env as a picklable callable batch_size -> env")
         self.num_workers = int(num_workers)
+        if collector is not None and num_workers:
+            raise ValueError("give either collector or num_workers, not both")
+        self.collector = collector
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
 
     def env_for(self, batch: int) -> EnvBase:
@@ -306,6 +323,10 @@ class SamplingPolicySelector:
         ``*T`` are the candidates' trial dims (``param_dims``): rows of the environment batch
         are laid out ``(t, z, k, m)``.
         """
+        if self.collector is not None or not all(
+            isinstance(c, ActionProbsPolicy) for c in candidates
+        ):
+            return self._collect_each(candidates, iteration)
         trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
         trials = math.prod(trial_dims)
         z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
@@ -369,6 +390,46 @@ class SamplingPolicySelector:
         ]
         return torch.stack(repeats)
 
+    def _collect_each(self, candidates: Sequence, iteration: int) -> TensorDictBase:
+        """``[Z, K, M, N]`` episodes collected candidate by candidate (Z·M rows each): the way
+        for candidates that are not the library's policies (e.g. a TorchRL
+        ``ProbabilisticActor``), which cannot share one batched rollout."""
+        z, m, n = self.num_repeats, self.num_episodes, self.num_steps
+        if self.num_workers:
+            raise ValueError(
+                "num_workers needs every candidate to be a torch_api policy; got "
+                f"{[type(c).__name__ for c in candidates]}"
+            )
+        for cand in candidates:
+            if tuple(getattr(cand, "param_dims", ())):
+                raise ValueError(
+                    "candidates with per-trial parameters cannot be mixed with other policies"
+                )
+        parts = []
+        for i, cand in enumerate(candidates):
+            if self.collector is not None:
+                episodes = collect_with_collector(
+                    self.collector,
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            else:
+                episodes = collect_episodes(
+                    self.env_for(z * m),
+                    cand,
+                    num_episodes=z * m,
+                    num_steps=n,
+                    rewarded=False,
+                    iteration=iteration,
+                    policy_id=i,
+                )
+            parts.append(episodes.reshape(z, m, n))
+        return torch.stack(joinable(parts), 1)
+
     def _trial_chunks(self, episodes: TensorDictBase, earlier: TensorDictBase | None) -> list:
         """Slices of the trial dim such that each chunk's design stays under the byte budget."""
         trials, z, k, m, n = episodes.shape
@@ -398,13 +459,20 @@ class SamplingPolicySelector:
 
         Args:
             evaluation_policy: pi_l (``action_probs``).
-            candidates: the K sampling-policy candidates (TensorDict modules writing
-                ``action`` and ``sample_probs``).
-            earlier_episodes: the earlier sampling sets ``[M', N]`` (their rewards are not read).
+            candidates: the K sampling-policy candidates: the library's policies (collected in
+                one batched rollout where the env allows) or any TensorDict module writing
+                ``action`` and its sampling probability, e.g. TorchRL's
+                ``ProbabilisticActor(..., return_log_prob=True)`` (collected candidate by
+                candidate, Z·M rows each).
+            earlier_episodes: the earlier sampling sets ``[M', N']`` (their rewards are not
+                read), in the library's format or as TorchRL produces them (a ``Collector``'s
+                batch; :func:`~torch_api.data.as_episodes`).
             iteration: tag stored with the collected episodes.
         """
         if not candidates:
             raise ValueError("candidates must not be empty")
+        if earlier_episodes is not None:
+            earlier_episodes = as_episodes(earlier_episodes, rewarded=False)
         episodes = self.collect(candidates, iteration)
         j_all = (
             torch.cat(

@@ -63,7 +63,7 @@ def weighted_moment(
 ) -> torch.Tensor:
     """Unnormalised weighted moment ``Σ_i w_i x_i x_iᵀ``: ``[..., n, B], [..., n] -> [..., B, B]``.
 
-    Uses ``(x √w)ᵀ (x √w)``, the fastest form measured (TORCHRL-NOTES.md); ``w`` must be
+    Uses ``(x √w)ᵀ (x √w)``, the fastest form measured (docs/torchrl_stack.md); ``w`` must be
     non-negative, as importance weights are.
     """
     xw = x.to(dtype) * w.to(dtype).clamp_min(0).sqrt().unsqueeze(-1)
@@ -115,7 +115,7 @@ def weighted_ridge(
     """Importance-weighted regularised least squares (paper eq. 22-28, Algorithm 1).
 
     ``Â = (1/n) Σ w_i x_i x_iᵀ``, ``b̂ = (1/n) Σ w_i x_i r_i``, ``θ = (Â + λI)^{-1} b̂``.
-    The ``1/n`` normalisation is kept because λ's meaning depends on it (SPEC section 3).
+    The ``1/n`` normalisation is kept because λ's meaning depends on it (docs/algorithm.md).
 
     Args:
         x: psi_hat rows ``[..., n, B]``.
@@ -289,7 +289,7 @@ def aggregate_identical_rows(
 ) -> AggregatedRows:
     """Merge bit-identical rows of a design, summing their weights (finite state spaces).
 
-    With grouped psi_hat (SPEC section 3) a chain-walk data set has at most ``S × A = 20``
+    With grouped psi_hat (docs/algorithm.md) a chain-walk data set has at most ``S × A = 20``
     distinct rows however many samples it holds, so the cost of :func:`j_criterion` and
     :func:`weighted_ridge` on the aggregate stops growing with n. Pass
     ``num_samples=out.num_samples`` and ``sq_weights=out.sq_weights`` to keep results identical.
