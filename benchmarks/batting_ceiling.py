@@ -37,9 +37,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 from batting_reference import reference_optimum  # noqa: E402
+from train_batting import make_basis, parse_widths  # noqa: E402
 
-from envs.batting import BASIS_TAU, MAX_STEPS, N_ACTIONS, BattingEnv, basis_centers  # noqa: E402
-from torch_api.basis import GaussianActionBasis  # noqa: E402
+from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.design import build_design  # noqa: E402
 from torch_api.policies import ActionProbsPolicy, LinearQPolicy  # noqa: E402
@@ -88,12 +88,8 @@ class CockThenSwing(ActionProbsPolicy):
         return (1.0 - self.epsilon) * greedy + self.epsilon / N_ACTIONS
 
 
-def make_basis() -> GaussianActionBasis:
-    return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
-
-
-def collect(policy, episodes: int, seed: int) -> object:
-    env = BattingEnv(batch_size=episodes, seed=seed)
+def collect(policy, episodes: int, seed: int, end_at_hit: bool = False) -> object:
+    env = BattingEnv(batch_size=episodes, seed=seed, end_at_hit=end_at_hit)
     policy.generator = torch.Generator().manual_seed(seed + 1)
     return collect_episodes(env, policy, num_episodes=episodes, num_steps=MAX_STEPS, rewarded=True)
 
@@ -106,21 +102,32 @@ def score(policy, episodes: int, seed: int) -> tuple[float, float]:
     return float(TEST_EPISODES_PER_SCORE * ret.mean()), float(TEST_EPISODES_PER_SCORE * se)
 
 
-def fit(episodes, policy: LinearQPolicy, psi: PsiHat, lam: float) -> torch.Tensor:
+def fit(episodes, policy, psi: PsiHat, lam: float, method: str = "brm") -> torch.Tensor:
+    """θ of the library's fit (``"brm"``: ridge regression of r on psi_hat, eq. 22-28) or of
+    LSTD-Q (``"lstd"``: ``θ = (Φᵀ W (Φ − γΦ') / n + λI)⁻¹ Φᵀ W r / n``, Φ − γΦ' = psi_hat)."""
     design = build_design(episodes, policy, psi, min_ess_fraction=0.0)
-    return weighted_ridge(design.x, design.w, design.reward, lam, num_samples=design.num_samples)
+    if method == "brm":
+        return weighted_ridge(
+            design.x, design.w, design.reward, lam, num_samples=design.num_samples
+        )
+    obs = episodes["observation"].reshape(-1, episodes["observation"].shape[-1])
+    phi = psi.basis.phi(obs.to(torch.float64), episodes["action"].reshape(-1))
+    weighted = phi * (design.w * design.mask)[:, None] / design.num_samples
+    a = weighted.T @ design.x
+    b = weighted.T @ design.reward
+    return torch.linalg.solve(a + lam * torch.eye(a.shape[0], dtype=a.dtype), b)
 
 
 def lspi_on_random_data(args, num_episodes: int, basis, psi) -> dict:
     """LSPI rounds on ``num_episodes`` uniformly random episodes; scores of pi_{l+1}."""
     started = time.perf_counter()
     uniform = LinearQPolicy(basis=basis, theta=torch.zeros(basis.num_features), epsilon=1.0)
-    data = collect(uniform, num_episodes, args.seed)
+    data = collect(uniform, num_episodes, args.seed, args.end_at_hit)
     theta = torch.ones(basis.num_features, dtype=torch.float64)
     rounds = []
     for l_now in range(1, args.iterations + 1):
         pi_l = LinearQPolicy(basis=basis, theta=theta, epsilon=0.15 / l_now)
-        theta = fit(data, pi_l, psi, args.lam)
+        theta = fit(data, pi_l, psi, args.lam, args.fit)
         test_seed = args.seed + 1000 * l_now + 7
         s, se = score(
             LinearQPolicy(basis=basis, theta=theta, epsilon=0.15 / (l_now + 1)),
@@ -137,12 +144,9 @@ def lspi_on_random_data(args, num_episodes: int, basis, psi) -> dict:
 def evaluation_capacity(args, basis, psi) -> dict:
     """Fit Q̂ of the ε-soft rule from its own episodes; score the rule and Q̂'s greedy policy."""
     rule = CockThenSwing(epsilon=args.capacity_epsilon)
-    data = collect(rule, args.capacity_episodes, args.seed + 5)
+    data = collect(rule, args.capacity_episodes, args.seed + 5, args.end_at_hit)
     # psi_hat and the weights need the evaluation policy's probabilities: the rule itself
-    design = build_design(data, rule, psi, min_ess_fraction=0.0)
-    theta = weighted_ridge(
-        design.x, design.w, design.reward, args.lam, num_samples=design.num_samples
-    )
+    theta = fit(data, rule, psi, args.lam, args.fit)
     seed = args.seed + 99
     return {
         "rule": score(CockThenSwing(epsilon=0.0), args.test_episodes, seed),
@@ -151,6 +155,23 @@ def evaluation_capacity(args, basis, psi) -> dict:
             LinearQPolicy(basis=basis, theta=theta, epsilon=0.0), args.test_episodes, seed
         ),
     }
+
+
+def print_capacity(args, cap: dict, optimum: float) -> None:
+    print(
+        f"\nevaluation capacity: the rule (swing iff φ2 < {COCKED_ELBOW} or "
+        f"φ̇2 > {WHIPPING_ELBOW}), "
+        f"{args.capacity_episodes} episodes at ε = {args.capacity_epsilon}, fitted once\n"
+    )
+    print("| policy | score | % of optimum |")
+    print("|---|---:|---:|")
+    for name, key in (
+        ("the rule, greedy", "rule"),
+        (f"the rule, ε = {args.capacity_epsilon}", "rule_soft"),
+        ("greedy policy of the fitted Q̂", "greedy_of_fit"),
+    ):
+        s, se = cap[key]
+        print(f"| {name} | {s:.1f} ± {se:.1f} | {100 * s / optimum:.0f} % |")
 
 
 def main(argv=None) -> dict:
@@ -162,6 +183,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--capacity-epsilon", type=float, default=0.15)
     parser.add_argument("--lam", type=float, default=DEFAULT_LAMBDA)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--basis-widths",
+        default="",
+        help="beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (default: the "
+        "paper's τ = 3π/2 for all)",
+    )
+    parser.add_argument(
+        "--end-at-hit", action="store_true", help="beyond the paper: episodes end at the hit"
+    )
+    parser.add_argument(
+        "--fit", choices=("brm", "lstd"), default="brm", help="the library's fit or LSTD-Q"
+    )
+    parser.add_argument("--no-capacity", action="store_true", help="skip the capacity check")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
     parser.add_argument("--out", default="", help="write the results as JSON here")
     args = parser.parse_args(argv)
@@ -172,7 +206,10 @@ def main(argv=None) -> dict:
         parser.error("--episodes and --iterations must be >= 1, --test-episodes >= 2")
     torch.set_num_threads(1)
     started = time.perf_counter()
-    basis = make_basis()
+    try:
+        basis = make_basis(parse_widths(args.basis_widths))
+    except ValueError as error:
+        parser.error(str(error))
     psi = PsiHat(basis=basis, gamma=1.0, mode="single")
 
     best = reference_optimum()
@@ -207,21 +244,9 @@ def main(argv=None) -> dict:
         cells = " | ".join(f"{r['greedy']:.1f}" for r in run["rounds"])
         print(f"| {run['episodes']} | {cells} |")
 
-    cap = evaluation_capacity(args, basis, psi)
-    print(
-        f"\nevaluation capacity: the rule (swing iff φ2 < {COCKED_ELBOW} or "
-        f"φ̇2 > {WHIPPING_ELBOW}), "
-        f"{args.capacity_episodes} episodes at ε = {args.capacity_epsilon}, fitted once\n"
-    )
-    print("| policy | score | % of optimum |")
-    print("|---|---:|---:|")
-    for name, key in (
-        ("the rule, greedy", "rule"),
-        (f"the rule, ε = {args.capacity_epsilon}", "rule_soft"),
-        ("greedy policy of the fitted Q̂", "greedy_of_fit"),
-    ):
-        s, se = cap[key]
-        print(f"| {name} | {s:.1f} ± {se:.1f} | {100 * s / optimum:.0f} % |")
+    cap = None if args.no_capacity else evaluation_capacity(args, basis, psi)
+    if cap is not None:
+        print_capacity(args, cap, optimum)
     ceiling = max(run["best"] for run in runs)
     wall = time.perf_counter() - started
     print(

@@ -784,7 +784,8 @@ class BattingEnv(EnvBase):
     ``"step_count"`` int64 [E, 1]; ``"action"`` int64 [E] (``Categorical(2)``: 0 = (50, -35) N m,
     1 = (-50, 10) N m on joints 1 and 2; a one-hot [E, 2] is accepted too); ``"reward"`` float32
     [E, 1], the carry (m) in the step of the first ball-bat contact, else 0; ``"done"``,
-    ``"terminated"`` (always False), ``"truncated"`` bool [E, 1], True at step ``max_steps``.
+    ``"terminated"`` (False, or with ``end_at_hit`` True from the step of the first contact
+    on), ``"truncated"`` bool [E, 1], True at step ``max_steps``.
 
     Args:
         batch_size: number of parallel arms E (an int or a 1-d shape).
@@ -795,6 +796,9 @@ class BattingEnv(EnvBase):
         scheme, coarse_dt, fine_dt, margin, coarse_integrator, nthread: fidelity knobs of
             :class:`BattingSimulator`.
         audit: a :class:`PhysicsAudit` counting (and sampling) the env's physics rollouts.
+        end_at_hit: end the episode (``terminated``) at the step of the first ball-bat
+            contact: the ball is gone, nothing after it can earn a reward. Off by default
+            (the paper's episodes run all ``max_steps`` steps).
 
     Example:
         >>> env = BattingEnv(batch_size=4, seed=0)
@@ -818,6 +822,7 @@ class BattingEnv(EnvBase):
         coarse_integrator: str = COARSE_INTEGRATOR,
         nthread: int | None = None,
         audit: PhysicsAudit | None = None,
+        end_at_hit: bool = False,
     ) -> None:
         if isinstance(batch_size, int):
             batch_size = (batch_size,)
@@ -835,6 +840,7 @@ class BattingEnv(EnvBase):
             batch_size=batch_size,
         )
         self.max_steps = max_steps
+        self.end_at_hit = bool(end_at_hit)
         self.noise_std = math.sqrt(float(noise_variance))  # (N m)
         self.sim = BattingSimulator(
             num_envs=batch_size[0],
@@ -930,12 +936,15 @@ class BattingEnv(EnvBase):
         obs = torch.as_tensor(self.sim.observation(), dtype=torch.float32, device=self.device)
         steps = torch.as_tensor(self._steps, device=self.device).unsqueeze(-1)
         truncated = steps >= self.max_steps
+        terminated = torch.zeros_like(truncated)
+        if self.end_at_hit:
+            terminated = torch.as_tensor(self.sim.hit.copy(), device=self.device).unsqueeze(-1)
         out = {
             "observation": obs,
             "step_count": steps.clone(),
-            "done": truncated.clone(),
-            "terminated": torch.zeros_like(truncated),
-            "truncated": truncated,
+            "done": truncated | terminated,
+            "terminated": terminated,
+            "truncated": truncated & ~terminated,
         }
         if reward is not None:
             out["reward"] = torch.as_tensor(reward, dtype=torch.float32, device=self.device)

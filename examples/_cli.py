@@ -124,9 +124,6 @@ def dataclass_parser(
         if f.type in ("bool", bool):
             parser.add_argument(flag, action="store_true", help=text)
             continue
-        choices = f.metadata.get("choices")
-        if choices:
-            text += f" (one of: {', '.join(map(str, choices))})"
         parser.add_argument(
             flag, type=type(f.default), default=f.default, help=text, metavar=_metavar(f)
         )
@@ -138,8 +135,9 @@ def dataclass_parser(
 
 
 def _metavar(f: dataclasses.Field) -> str:
-    kind = type(f.default)
-    return {int: "INT", float: "X"}.get(kind, f.name.upper())
+    if f.metadata.get("choices"):
+        return "{" + ",".join(map(str, f.metadata["choices"])) + "}"
+    return {int: "INT", float: "X"}.get(type(f.default), f.name.upper())
 
 
 def range_error(cls, args) -> str | None:

@@ -139,11 +139,36 @@ class Args:
     logger: str = field("none", choices=LOGGERS)
     """also write the learning curves (means over trials) with a TorchRL logger under
     <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
+    basis_widths: str = ""
+    """beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (rad, rad/s, rad,
+    rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. 0.785,3.14,0.785,3.14"""
+    end_at_hit: bool = False
+    """beyond the paper: episodes terminate at the first bat-ball contact (the ball is gone)"""
+    fit: str = field("brm", choices=("brm", "lstd"))
+    """how θ is fitted: brm (the paper: least squares of r on psi_hat) or lstd (beyond the paper:
+    LSTD-Q, with AL's J of the same learner)"""
+
+
+def parse_widths(text: str) -> list[float] | None:
+    """``"w1,w2,w3,w4"`` -> four floats (None for ""); ValueError if not four positive numbers."""
+    if not text:
+        return None
+    try:
+        widths = [float(w) for w in text.split(",")]
+    except ValueError:
+        widths = []
+    if len(widths) != 4 or not all(w > 0 for w in widths):
+        raise ValueError(f"--basis-widths must be four positive numbers w1,w2,w3,w4, got {text!r}")
+    return widths
 
 
 def check(args: Args) -> str | None:
     if args.resume and args.overwrite:
         return "--resume and --overwrite exclude each other"
+    try:
+        parse_widths(args.basis_widths)
+    except ValueError as error:
+        return str(error)
     if args.chunks > args.trials:
         return f"--chunks must lie in 1..{args.trials} (--trials), got {args.chunks}"
     if args.backend != "local" and args.stop_after_checkpoints:
@@ -181,6 +206,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
+import torch  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
@@ -220,9 +246,29 @@ def schedule_of(args: Args, name: str) -> list[int]:
     return [args.episodes] * len(base) if args.episodes else list(base)
 
 
-def make_basis() -> GaussianActionBasis:
-    """The paper's 54 Gaussian centres, τ = 3π/2, and a constant, per action (B = 110)."""
-    return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
+class ScaledGaussianBasis(GaussianActionBasis):
+    """Gaussian kernels with one width per state dimension: ``exp(-Σ_d (s_d - c_d)² / 2w_d²)``.
+
+    The paper's kernel (eq. 64) on coordinates divided by the widths ``w [d]`` (τ = 1 there).
+    """
+
+    def __init__(self, *, centers: torch.Tensor, widths, num_actions: int) -> None:
+        widths = torch.as_tensor(widths, dtype=torch.float64)
+        super().__init__(
+            centers=centers / widths.to(centers.dtype), tau=1.0, num_actions=num_actions
+        )
+        self.register_buffer("widths", widths)
+
+    def kernels(self, obs: torch.Tensor) -> torch.Tensor:
+        return super().kernels(obs / self.widths.to(device=obs.device, dtype=obs.dtype))
+
+
+def make_basis(widths: list[float] | None = None) -> GaussianActionBasis:
+    """The paper's 54 Gaussian centres, τ = 3π/2, and a constant, per action (B = 110); with
+    ``widths``, the same centres with one kernel width per state dimension (beyond the paper)."""
+    if widths is None:
+        return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
+    return ScaledGaussianBasis(centers=basis_centers(), widths=widths, num_actions=N_ACTIONS)
 
 
 class TestPerformance:
@@ -323,7 +369,11 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
     def env(batch_size: int, seed: int | None = None) -> BattingEnv:
         # the rewarded and reward-free envs are re-seeded by the loop every iteration
         return BattingEnv(
-            batch_size=batch_size, seed=seed, nthread=chunk.physics_threads, audit=audit
+            batch_size=batch_size,
+            seed=seed,
+            nthread=chunk.physics_threads,
+            audit=audit,
+            end_at_hit=args.end_at_hit,
         )
 
     first = chunk.trials[0]
@@ -331,7 +381,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
     api = InterruptibleRun(
         env=env,
         reward_free_env=env,
-        basis=make_basis(),
+        basis=make_basis(parse_widths(args.basis_widths)),
         schedule=chunk.schedule,
         num_steps=MAX_STEPS,
         gamma=GAMMA,
@@ -339,6 +389,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         lam=args.lam,
         num_repeats=args.repeats,
         psi_mode="single",
+        fit=args.fit,
         tie_break=args.tie_break,
         evaluate=TestPerformance(len(chunk.trials), make_env=env),
         num_trials=len(chunk.trials),

@@ -334,3 +334,22 @@ def test_block_seeds_give_each_block_the_stream_of_a_lone_env():
     assert batched.block_rngs is None
     with pytest.raises(ValueError, match="equal blocks"):
         batched.set_block_seeds([1, 2, 3, 4])
+
+
+def test_end_at_hit_terminates_at_the_first_contact(episodes):
+    """``end_at_hit``: terminated (done, not truncated) from the step of the first contact on;
+    the physics and the rewards up to it are those of the paper's env."""
+    env, (_, actions, rewards, hits, _) = episodes
+    ending = BattingEnv(batch_size=env.batch_size[0], seed=3, end_at_hit=True)
+    check_env_specs(BattingEnv(batch_size=2, seed=0, end_at_hit=True))
+    td = ending.reset()
+    for n in range(MAX_STEPS):
+        td["action"] = actions[:, n]
+        td = ending.step(td)
+        torch.testing.assert_close(td["next", "reward"].squeeze(-1), rewards[:, n])
+        terminated = td["next", "terminated"].squeeze(-1)
+        assert torch.equal(terminated, hits[:, n])
+        assert torch.equal(td["next", "done"].squeeze(-1), hits[:, n] | (n == MAX_STEPS - 1))
+        assert not (td["next", "truncated"].squeeze(-1) & terminated).any()
+        td = td["next"]
+    assert hits[:, -1].any() and not hits[:, -1].all()  # both kinds of episode were seen

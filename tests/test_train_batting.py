@@ -265,3 +265,16 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
     while any(_running(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_running(w) for w in workers), "workers outlived their killed parent"
+
+
+def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
+    """Scaled basis, episodes that end at the hit (fewer transitions bought) and LSTD-Q."""
+    widths = ("--basis-widths", "0.785,3.14,0.785,3.14")
+    proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
+    payload = json.loads((tmp_path / "train_batting.json").read_text())
+    for run in payload["results"]["decreasing"]["runs"].values():
+        assert run["rewarded_transitions"][-1] <= 4 * STEPS
+    bad = run_script(tmp_path / "bad", "--basis-widths", "1,2,3")
+    assert bad.returncode == 2 and "--basis-widths must be four positive numbers" in bad.stderr

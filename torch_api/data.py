@@ -115,6 +115,14 @@ class EnvPerBatch:
             self._built[batch] = self.env(batch)
         return self._built[batch]
 
+    def close(self) -> None:
+        """Close the envs the factory built (a ``ParallelEnv``'s worker processes end); an env
+        given as such is the caller's to close. Later calls build afresh."""
+        built, self._built = self._built, {}
+        for env in built.values():
+            if not getattr(env, "is_closed", False):
+                env.close()
+
 
 def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:
     """Action indices ``[E, N]`` from indices ``[E, N]``, ``[E, N, 1]`` or one-hot ``[E, N, A]``."""

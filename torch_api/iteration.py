@@ -30,9 +30,11 @@ from torch_api.data import (
     validate_episodes,
 )
 from torch_api.design import build_design
+from torch_api.lstd import phi_rows, weighted_lstd
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.selector import (
+    FITS,
     PAPER_EPSILON_OFFSETS,
     SamplingPolicySelector,
     candidate_epsilons,
@@ -275,6 +277,9 @@ class ActivePolicyIteration:
             processes by TorchRL's ``MultiSyncCollector``
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
             must then be a picklable callable ``batch_size -> env``.
+        fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
+            ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
+            learner; needs ``psi_mode="single"``).
         initial_episodes: a warm start: rewarded episodes already bought (with any sampling
             policy that recorded its probabilities), stored first in ``api.rewarded`` and used
             by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
@@ -336,6 +341,7 @@ class ActivePolicyIteration:
         resume: bool = False,
         overwrite: bool = False,
         rewarded_slice: str = "all",
+        fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
     ) -> None:
@@ -399,6 +405,11 @@ class ActivePolicyIteration:
         self.improvement = improvement
         self.beta = beta
         self.tie_break = tie_break
+        if fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        if fit == "lstd" and psi_mode != "single":
+            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
+        self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
         if num_trials is None and trial_seeds is not None:
@@ -461,6 +472,7 @@ class ActivePolicyIteration:
             generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
+            fit=fit,
             collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
@@ -474,7 +486,7 @@ class ActivePolicyIteration:
                 try:
                     self._restore(self.store.stored)
                 except BaseException:
-                    self.close()
+                    self._close_store()
                     raise
                 self.resumed = True
 
@@ -575,6 +587,7 @@ class ActivePolicyIteration:
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
             self.policy = self.policy.with_action_spec(self._action_encoding)
+            self.selector.action_encoding = self._action_encoding
         seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
@@ -734,9 +747,15 @@ class ActivePolicyIteration:
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
         design = build_design(episodes, self.policy.to_device(self.device), self.psi)
-        self.theta = weighted_ridge(
-            design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-        ).cpu()
+        if self.fit == "lstd":
+            phi = phi_rows(episodes, self.basis)
+            self.theta = weighted_lstd(
+                phi, design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
+        else:
+            self.theta = weighted_ridge(
+                design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
+            ).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -770,7 +789,7 @@ class ActivePolicyIteration:
             self.rewarded_transitions,
         )
         if self.iteration == len(self.schedule):
-            self.close()
+            self._close_store()
         return record
 
     # -- durable state -----------------------------------------------------------------------
@@ -809,6 +828,7 @@ class ActivePolicyIteration:
             "initial_episodes": None
             if self._warm is None
             else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
+            "fit": self.fit,
         }
         return config
 
@@ -909,10 +929,19 @@ class ActivePolicyIteration:
         trials = math.prod(self.trial_dims)
         return (len(self.rewarded) + len(self._partial)) * trials
 
-    def close(self) -> None:
+    def _close_store(self) -> None:
         """Close the run's store (its lock is released); the object keeps its state."""
         if self.store is not None:
             self.store.close()
+
+    def close(self) -> None:
+        """Close the run's store (releasing its lock) and the envs built from env factories
+        (rewarded and reward-free), e.g. the worker processes of ``env=lambda rows:
+        ParallelEnv(rows, make_env)``; envs given as such are the caller's to close. The
+        object keeps its state: envs are built again if it goes on, a store is not."""
+        self._close_store()
+        self._env_for.close()
+        self.selector.close()
 
     def __enter__(self) -> ActivePolicyIteration:
         return self
@@ -925,7 +954,8 @@ class ActivePolicyIteration:
         remaining = range(self.iteration, len(self.schedule))
         for _ in tqdm(remaining, desc=f"API ({self.mode})", disable=not progress):
             self.step()
-        self.close()  # (a resumed run that was complete already)
+        if self.iteration == len(self.schedule):
+            self._close_store()  # (a resumed run that was complete already)
         return self.history
 
 

@@ -19,6 +19,7 @@ from torch_api.data import (
     seed_env,
 )
 from torch_api.design import build_design
+from torch_api.lstd import lstd_j_values
 from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
@@ -33,6 +34,7 @@ __all__ = [
 ]
 
 PAPER_EPSILON_OFFSETS = (0.0, 0.15, 0.5, 0.85)  # eq. 59: candidates ε_l + offset
+FITS = ("brm", "lstd")  # the paper's least-squares fit on psi_hat, or LSTD-Q (torch_api.lstd)
 _STATE_ACTION_KEYS = (
     "observation",
     "action",
@@ -241,6 +243,9 @@ class SamplingPolicySelector:
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`; for slow
             environments); ``env`` must then be a picklable callable ``batch_size -> env``,
             seeded through :meth:`seed_env`.
+        fit: the learner whose error J estimates: ``"brm"`` (the paper's least-squares fit on
+            psi_hat, :func:`j_values`) or ``"lstd"`` (LSTD-Q, beyond the paper,
+            :func:`~torch_api.lstd.lstd_j_values`).
         collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
             (:func:`~torch_api.data.collect_with_collector`): each candidate's ``Z·M``
             reward-free episodes are then read from it, candidate by candidate, instead of from
@@ -275,6 +280,7 @@ class SamplingPolicySelector:
         device: torch.device | str | None = None,
         max_design_bytes: int = 2**29,
         num_workers: int = 0,
+        fit: str = "brm",
         collector: Callable | None = None,
     ) -> None:
         for name, value in (
@@ -300,10 +306,18 @@ class SamplingPolicySelector:
         if num_workers and not self._envs.is_factory:
             raise ValueError("num_workers needs env as a picklable callable batch_size -> env")
         self.num_workers = int(num_workers)
+        if fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        self.fit = fit
         if collector is not None and num_workers:
             raise ValueError("give either collector or num_workers, not both")
         self.collector = collector
+        self.action_encoding = None  # the env's action encoding, where known (else probed)
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
+
+    def close(self) -> None:
+        """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""
+        self._envs.close()
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
@@ -339,6 +353,7 @@ class SamplingPolicySelector:
             episodes = collect_episodes_in_workers(
                 self._envs.env,
                 stack,
+                action_spec=self.action_encoding,
                 num_episodes=trials * z * k * m,
                 num_steps=n,
                 rewarded=False,
@@ -446,7 +461,8 @@ class SamplingPolicySelector:
             episodes = episodes.to(self.device)
             earlier = None if earlier is None else earlier.to(self.device)
             policy = policy.to_device(self.device)
-        return j_values(episodes, earlier, policy, self.psi, self.lam).cpu()
+        j = lstd_j_values if self.fit == "lstd" else j_values
+        return j(episodes, earlier, policy, self.psi, self.lam).cpu()
 
     def select(
         self,
