@@ -924,11 +924,6 @@ class ActivePolicyIteration:
             )
         self._restore(stored, Path(path))
 
-    def stored_episodes(self) -> int:
-        """Rewarded episodes held (bought and kept), all trials together."""
-        trials = math.prod(self.trial_dims)
-        return (len(self.rewarded) + len(self._partial)) * trials
-
     def _close_store(self) -> None:
         """Close the run's store (its lock is released); the object keeps its state."""
         if self.store is not None:
