@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable, Sequence
 
 import torch
@@ -32,6 +33,7 @@ from torchrl.envs import EnvBase
 
 from torch_api.actions import ActionEncoding
 from torch_api.data import _episodes_from_rollout, seed_env, validate_episodes
+from torch_api.lifetime import die_with_parent
 
 __all__ = ["collect_episodes_in_workers"]
 
@@ -73,8 +75,10 @@ class _WorkerEnv:
 
     def __init__(self, make_env, rows: int, seed: int, block_seeds: Sequence[int] | None):
         self.make_env, self.rows, self.seed, self.block_seeds = make_env, rows, seed, block_seeds
+        self.parent = os.getpid()  # (the worker dies with this process)
 
     def __call__(self) -> EnvBase:
+        die_with_parent(self.parent)  # (called in the worker process)
         env = self.make_env(self.rows)
         seed_env(env, self.seed, self.block_seeds)
         return env
