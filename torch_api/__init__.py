@@ -5,6 +5,17 @@ The pure tensor functions (one concept a module) and the components built on the
 >>> import torch_api
 >>> sorted(torch_api.__all__)[:4]
 ['ActionEncoding', 'ActionProbsPolicy', 'ActivePolicyIteration', 'BlockSeeded']
+
+What a user extends, each with a runnable example in its docstring (docs/architecture.md):
+
+* a policy family: subclass :class:`ActionProbsPolicy` (implement ``_action_probs``);
+* an active-learning criterion: a function with the signature :data:`Criterion`,
+  ``(PooledMoments, lam) -> [..., K]`` (the default is :func:`j_eq46`, J of eq. 46);
+* an environment with per-trial random streams: the :class:`BlockSeeded` protocol
+  (``set_block_seeds``); any TorchRL env with discrete actions works without it.
+
+>>> torch_api.ActionProbsPolicy, torch_api.Criterion, torch_api.BlockSeeded  # doctest: +ELLIPSIS
+(<class '...ActionProbsPolicy'>, collections.abc.Callable[...], <class '...BlockSeeded'>)
 >>> torch_api.__version__  # the installed distribution's version (pyproject.toml)
 '0.1.0'
 """
@@ -14,6 +25,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from torch_api.actions import ActionEncoding
 from torch_api.basis import GaussianActionBasis
+from torch_api.criterion import Criterion, PooledMoments, j_eq46, pooled_moments
 from torch_api.data import EpisodeBuffer, as_episodes, collect_episodes, pad_steps
 from torch_api.design import build_design
 from torch_api.iteration import ActivePolicyIteration, IterationRecord
@@ -28,7 +40,7 @@ from torch_api.policies import (
 from torch_api.psi import PsiHat, psi_hat, state_action_groups
 from torch_api.selector import SamplingPolicySelector, j_values
 from torch_api.solve import j_criterion, weighted_moment, weighted_ridge
-from torch_api.streams import BlockSeeded, seed_env
+from torch_api.streams import BlockSeeded, TrialStreams, seed_env
 from torch_api.weights import per_decision_weights
 
 try:
@@ -44,22 +56,27 @@ __all__ = [
     "ActionProbsPolicy",
     "ActivePolicyIteration",
     "BlockSeeded",
+    "Criterion",
     "EpisodeBuffer",
     "GaussianActionBasis",
     "IterationRecord",
     "LinearQPolicy",
+    "PooledMoments",
     "PsiHat",
     "SamplingPolicySelector",
     "TabularPolicy",
+    "TrialStreams",
     "as_episodes",
     "build_design",
     "collect_episodes",
     "epsilon_greedy_probs",
     "greedy_actions",
     "j_criterion",
+    "j_eq46",
     "j_values",
     "pad_steps",
     "per_decision_weights",
+    "pooled_moments",
     "psi_hat",
     "seed_env",
     "softmax_probs",

@@ -31,8 +31,8 @@ from typing import Any, TypeVar
 
 import torch
 
-from torch_api.iteration import derive_seed
 from torch_api.lifetime import die_with_parent
+from torch_api.streams import derive_seed
 
 __all__ = ["BACKENDS", "run_chunks", "split_trials", "threads_per_worker", "trial_seeds"]
 

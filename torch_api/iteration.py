@@ -1,200 +1,76 @@
-"""Active policy iteration and its passive baseline (paper section 4.1, Algorithm 1)."""
+"""Active policy iteration and its passive baseline (paper section 4.1, Algorithm 1): the loop.
+
+The loop (:meth:`ActivePolicyIteration.step`, :meth:`~ActivePolicyIteration.run`) and the parts
+it is made of, one concept a module:
+
+==================================== ====================================================
+:mod:`torch_api.buying`              steps 1-2: choose the sampling policy, buy, commit
+:mod:`torch_api.durable`             the durable state: settings a resume checks, restore
+:mod:`torch_api.candidates`          candidate families (ε-greedy, softmax) as small objects
+:mod:`torch_api.streams`             every random stream from (seed, trial, iteration, role)
+:mod:`torch_api.selector`            Algorithm 2, the J'-chosen sampling policy
+:mod:`torch_api.records`             :class:`IterationRecord`, what an iteration leaves
+==================================== ====================================================
+"""
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import numbers
 import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
+from torch_api._checks import HUGE_LAMBDA, _check_lambda, _check_schedule, _count
 from torch_api.actions import ActionEncoding
-from torch_api.data import (
-    EnvPerBatch,
-    EpisodeBuffer,
-    collect_episodes,
-    collect_with_collector,
-    seed_env,
-    validate_episodes,
+from torch_api.buffer import EpisodeBuffer, _warm_start
+from torch_api.buying import RewardBuying
+from torch_api.candidates import (
+    IMPROVEMENTS,
+    PAPER_EPSILON_OFFSETS,
+    SOFTMAX_CANDIDATE_SCALES,
+    CandidatePolicies,
+    make_family,
+    paper_epsilon,
 )
+from torch_api.collect import EnvPerBatch
 from torch_api.design import build_design
+from torch_api.durable import DurableState, fingerprint
 from torch_api.lstd import phi_rows, weighted_lstd
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
-from torch_api.selector import (
-    FITS,
-    PAPER_EPSILON_OFFSETS,
-    SamplingPolicySelector,
-    candidate_epsilons,
-)
+from torch_api.records import IterationRecord
+from torch_api.selector import FITS, SamplingPolicySelector
 from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
-from torch_api.store import CorruptRunError, RunStore, StoredRun
+from torch_api.store import RunStore
+from torch_api.streams import TrialStreams, derive_seed, slice_seed
 
-__all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
+__all__ = [
+    "HUGE_LAMBDA",
+    "IMPROVEMENTS",
+    "SOFTMAX_CANDIDATE_SCALES",
+    "ActivePolicyIteration",
+    "IterationRecord",
+    "derive_seed",
+    "fingerprint",
+    "paper_epsilon",
+    "slice_seed",
+]
 
 _log = logging.getLogger(__name__)
-_STREAMS = {
-    "policy": 0,
-    "reward_free_env": 1,
-    "rewarded_env": 2,
-    "evaluation": 3,
-    "trial": 4,
-    "reward_free_policy": 5,
-}
-_SLICE_STREAMS = {"policy": 6, "rewarded_env": 7}  # per-episode slices (rewarded_slice="episode")
 SLICES = ("all", "episode")
-HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
-
 MODES = ("active", "passive")
-IMPROVEMENTS = ("epsilon_greedy", "softmax")
-SOFTMAX_CANDIDATE_SCALES = (1.0, 2.0, 5.0, 20.0)  # softmax candidates: β times these
 
 
-def paper_epsilon(iteration: int) -> float:
-    """ε of the evaluation policy of iteration l (1-based): ``0.15 / l`` (paper sections 4.2, 5)."""
-    return 0.15 / iteration
-
-
-def derive_seed(seed: int, iteration: int, stream: str) -> int:
-    """Independent seed of one random stream of one iteration (NumPy ``SeedSequence``).
-
-    Every iteration re-seeds its streams from ``(seed, iteration, stream)``, so an interrupted
-    run resumed from a checkpoint draws exactly the numbers an uninterrupted run would have.
-    """
-    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), _STREAMS[stream]]
-    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
-
-
-def _check_lambda(lam: float) -> None:
-    """λ must be a finite number > 0; a huge one (θ shrunk to about 0) is warned about."""
-    if not (isinstance(lam, numbers.Real) and lam > 0):
-        raise ValueError(f"lam must be > 0, got {lam}")
-    if not math.isfinite(lam):
-        raise ValueError(f"lam must be finite, got {lam}")
-    if lam > HUGE_LAMBDA:
-        warnings.warn(
-            f"lam = {lam:g} is huge: the ridge penalty dominates every design and θ shrinks to "
-            "about 0 whatever the rewards",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-
-
-def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
-    """Seed of one stream of rewarded episode m (0-based) of iteration l, for runs that buy
-    one episode at a time (``rewarded_slice="episode"``): a resume continues at any episode."""
-    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), _SLICE_STREAMS[stream], int(episode)]
-    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
-
-
-def _count(name: str, value, minimum: int = 1) -> int:
-    """``value`` as an int >= minimum; a non-integer (2.5, True, "3") is refused."""
-    integral = isinstance(value, numbers.Integral) or (
-        isinstance(value, float) and value.is_integer()
-    )
-    if isinstance(value, bool) or not integral:
-        raise ValueError(f"{name} must be an integer, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
-    return int(value)
-
-
-def _plain(value):
-    """A JSON-able, exact description of a setting's value (tensors by digest)."""
-    if isinstance(value, torch.Tensor):
-        data = value.detach().cpu().contiguous()
-        digest = hashlib.sha256(data.view(torch.uint8).numpy().tobytes()).hexdigest()
-        return {"dtype": str(data.dtype), "shape": list(data.shape), "sha256": digest}
-    if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
-    if isinstance(value, (bool, int, str)) or value is None:
-        return value
-    if isinstance(value, (tuple, list)) and all(
-        isinstance(v, (bool, int, float, str)) for v in value
-    ):
-        return [_plain(v) for v in value]
-    return None  # not a plain setting: left out
-
-
-_NOT_IDENTITY = {"batch_size", "seed", "rng", "device", "training", "num_envs", "nthread"}
-
-
-def fingerprint(obj) -> dict:
-    """What identifies an environment or a basis: its class, the tensors of its state and its
-    public plain attributes (numbers, strings, tensors), batch size, seeds and device left out.
-    """
-    out = {"class": f"{type(obj).__module__}.{type(obj).__qualname__}"}
-    if isinstance(obj, nn.Module):
-        out |= {f"state.{k}": _plain(v) for k, v in obj.state_dict().items()}
-    for name, value in sorted(vars(obj).items()):
-        if name.startswith("_") or name in _NOT_IDENTITY:
-            continue
-        plain = _plain(value)
-        if plain is not None:
-            out[name] = plain
-    return out
-
-
-@dataclass
-class IterationRecord:
-    """What happened in one iteration l (1-based) of Algorithm 1.
-
-    Attributes:
-        iteration: l.
-        chosen: index of the sampling-policy candidate used (0 = the evaluation policy itself;
-            always 0 in passive mode); a list over trials when run with ``num_trials``.
-        sampling_rule: ε (or β) of the sampling policy used (per trial with ``num_trials``).
-        j_mean: J' of every candidate ``[*T][K]`` (active mode), else None.
-        j_all: J of every repeat and candidate ``[*T][Z][K]`` (active mode), else None.
-        episodes_bought: rewarded episodes collected in this iteration (per trial).
-        rewarded_transitions: rewarded transitions bought so far (cumulative, per trial).
-        reward_free_transitions: reward-free transitions collected so far (cumulative, per
-            trial).
-        performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
-        seconds: wall time of the iteration (evaluation callback excluded).
-        theta: θ_l ``[*T][B]``.
-    """
-
-    iteration: int
-    chosen: int | list
-    sampling_rule: float | list
-    j_mean: list | None
-    j_all: list | None
-    episodes_bought: int
-    rewarded_transitions: int
-    reward_free_transitions: int
-    performance: dict | None
-    seconds: float
-    theta: list = field(repr=False)
-
-    def row(self) -> dict:
-        """The iteration's numbers as one flat dict for JSON/CSV (θ and per-repeat J left out)."""
-        return {
-            "iteration": self.iteration,
-            "episodes_bought": self.episodes_bought,
-            "rewarded_transitions": self.rewarded_transitions,
-            "reward_free_transitions": self.reward_free_transitions,
-            "chosen": self.chosen,
-            "sampling_rule": self.sampling_rule,
-            "j_mean": self.j_mean,
-            "seconds": self.seconds,
-            **(self.performance or {}),
-        }
-
-
-class ActivePolicyIteration:
+class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
     """Sample-reuse least-squares policy iteration with active sampling-policy selection.
 
     Algorithm 1 of Akiyama, Hachiya & Sugiyama (2010). In iteration l = 1 … L:
@@ -297,17 +173,14 @@ class ActivePolicyIteration:
             encoding). Not with ``num_trials``.
 
     Example:
-        >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
+        >>> from torchrl.envs import GymEnv
         >>> from torch_api.basis import GaussianActionBasis
-        >>> basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU,
-        ...                             num_actions=2)
-        >>> api = ActivePolicyIteration(
-        ...     env=ChainWalkEnv(batch_size=5, seed=0), basis=basis, schedule=(5, 3),
-        ...     num_steps=10, gamma=0.9, psi_mode="grouped",
-        ...     reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=1))
+        >>> basis = GaussianActionBasis(centers=torch.zeros(1, 4), tau=1.0, num_actions=2)
+        >>> api = ActivePolicyIteration(env=GymEnv("CartPole-v1"), basis=basis, schedule=(2, 1),
+        ...                             num_steps=5, gamma=0.9)
         >>> history = api.run()
-        >>> len(history), api.rewarded_transitions
-        (2, 80)
+        >>> len(history), api.rewarded_transitions <= 3 * 5
+        (2, True)
     """
 
     def __init__(
@@ -353,20 +226,7 @@ class ActivePolicyIteration:
             raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
         if improvement == "softmax" and not (beta is not None and beta > 0):
             raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
-        if not schedule or not all(
-            isinstance(m, numbers.Integral)
-            and not isinstance(m, bool)
-            and m >= 1
-            or isinstance(m, float)
-            and m.is_integer()
-            and m >= 1
-            for m in schedule
-        ):
-            raise ValueError(
-                "schedule must be a non-empty list of integer episode counts >= 1, "
-                f"got {list(schedule)}"
-            )
-        schedule = [int(m) for m in schedule]
+        schedule = _check_schedule(schedule)
         num_steps = _count("num_steps", num_steps)
         num_repeats = _count("num_repeats", num_repeats)
         knn_k = _count("knn_k", knn_k)
@@ -412,15 +272,14 @@ class ActivePolicyIteration:
         self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
-        if num_trials is None and trial_seeds is not None:
-            raise ValueError("trial_seeds needs num_trials")
-        if num_trials is not None and trial_seeds is None:
-            trial_seeds = [derive_seed(self.seed, t, "trial") for t in range(num_trials)]
-        if trial_seeds is not None and len(trial_seeds) != num_trials:
-            raise ValueError(
-                f"trial_seeds must hold num_trials = {num_trials} seeds, got {len(trial_seeds)}"
-            )
-        self.trial_seeds = None if trial_seeds is None else [int(t) for t in trial_seeds]
+        self.streams = TrialStreams.for_trials(self.seed, num_trials, trial_seeds)
+        self.trial_seeds = self.streams.trial_seeds
+        self.family = make_family(
+            improvement,
+            epsilon_schedule=epsilon_schedule,
+            candidate_offsets=self.candidate_offsets,
+            beta=beta,
+        )
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
@@ -451,11 +310,8 @@ class ActivePolicyIteration:
         self._action_encoding = None  # the env's action encoding, read from its first instance
         if isinstance(env, EnvBase):
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
-        num_candidates = len(
-            SOFTMAX_CANDIDATE_SCALES if improvement == "softmax" else self.candidate_offsets
-        )
         self.reward_free = EpisodeBuffer(
-            rewarded=False, capacity=self.num_repeats * num_candidates * sum(schedule)
+            rewarded=False, capacity=self.num_repeats * self.family.num_candidates * sum(schedule)
         )
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
@@ -495,244 +351,6 @@ class ActivePolicyIteration:
         """Rewarded transitions bought so far (per trial)."""
         trials = math.prod(self.trial_dims)
         return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
-
-    def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
-        """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""
-        if self.improvement == "softmax":
-            rule = {"beta": self.beta}
-        else:
-            epsilon = self.epsilon_schedule(iteration)
-            if not 0 <= epsilon <= 1:
-                raise ValueError(f"epsilon_schedule({iteration}) = {epsilon} lies outside [0, 1]")
-            rule = {"epsilon": epsilon}
-        return LinearQPolicy(
-            basis=self.basis,
-            theta=theta,
-            generator=self.generator,
-            tie_break=self.tie_break,
-            action_spec=self._action_encoding,
-            **rule,
-        )
-
-    def initial_policy(self) -> LinearQPolicy:
-        """pi_1, the policy of θ_0, whatever the run's progress (e.g. after a resume)."""
-        return self._policy(self._initial_theta.expand_as(self.theta).clone(), 1)
-
-    def _candidate_rules(self) -> torch.Tensor:
-        """ε (or β) of the K candidates of the coming iteration (eq. 59); the first is pi_l's."""
-        if self.improvement == "softmax":
-            return torch.tensor([self.beta * c for c in SOFTMAX_CANDIDATE_SCALES])
-        eps = self.epsilon_schedule(self.iteration + 1)
-        return torch.tensor(candidate_epsilons(eps, self.candidate_offsets), dtype=torch.float64)
-
-    def _with_rule(self, rule: torch.Tensor) -> LinearQPolicy:
-        key = "beta" if self.improvement == "softmax" else "epsilon"
-        return self.policy.with_rule(**{key: rule})
-
-    def candidates(self) -> list[LinearQPolicy]:
-        """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
-        return [self._with_rule(rule) for rule in self._candidate_rules()]
-
-    def _reward_free_candidates(self) -> list[LinearQPolicy]:
-        """The candidates drawing from the reward-free streams, not from pi_l's (which the
-        rewarded episodes use): AL's selection then leaves the rewarded draws as PL's."""
-        candidates = self.candidates()
-        for candidate in candidates:
-            candidate.generator = self.reward_free_generator
-            candidate.block_generators = self._reward_free_blocks
-        return candidates
-
-    def block_seeds(self, iteration: int, stream: str) -> list[int]:
-        """Per-trial seeds of one stream of iteration l (``trial_seeds`` runs only)."""
-        if self.trial_seeds is None:
-            raise ValueError("block_seeds needs a run with num_trials")
-        return [derive_seed(s, iteration, stream) for s in self.trial_seeds]
-
-    def _evaluation_policy(self, iteration: int) -> tuple[LinearQPolicy, int]:
-        """pi_{l+1} with sampling streams of its own, and the evaluation seed of iteration l.
-
-        The streams depend on (seed, l) alone, so a resumed run measures what an
-        uninterrupted one would.
-        """
-        seed = derive_seed(self.seed, iteration, "evaluation")
-        policy = self.policy.with_rule(**self.policy._rule())
-        policy.generator = torch.Generator().manual_seed(seed)
-        if self.trial_seeds is not None:
-            policy.block_generators = [
-                torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "evaluation")
-            ]
-        return policy, seed
-
-    def _env_seeds(self, iteration: int, stream: str) -> tuple[int, list[int] | None]:
-        """The seed and, with ``trial_seeds``, the per-trial seeds of an env stream of l."""
-        blocks = self.block_seeds(iteration, stream) if self.trial_seeds is not None else None
-        return derive_seed(self.seed, iteration, stream), blocks
-
-    def _seed_iteration(self, iteration: int, num_episodes: int) -> None:
-        """Re-seed the policies' streams and the environments of iteration l."""
-        trials = math.prod(self.trial_dims)
-        self.generator.manual_seed(derive_seed(self.seed, iteration, "policy"))
-        self.reward_free_generator.manual_seed(
-            derive_seed(self.seed, iteration, "reward_free_policy")
-        )
-        if self.trial_seeds is not None:
-            self.policy.block_generators = [
-                torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, "policy")
-            ]
-            self._reward_free_blocks = [
-                torch.Generator().manual_seed(s)
-                for s in self.block_seeds(iteration, "reward_free_policy")
-            ]
-        env = self._env_for(trials * num_episodes)
-        if self._action_encoding is None:  # the policies write actions in the env's encoding
-            self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
-            self.policy = self.policy.with_action_spec(self._action_encoding)
-            self.selector.action_encoding = self._action_encoding
-        seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
-        if self.mode == "active":
-            batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
-            self.selector.seed_env(batch, *self._env_seeds(iteration, "reward_free_env"))
-
-    def _buy(self) -> None:
-        """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes.
-
-        The selection is committed first, then each slice of rewarded episodes (all M_l rows,
-        or one episode index at a time with ``rewarded_slice="episode"``) before the next is
-        measured. Episodes already stored (a resumed run) are not bought again.
-        """
-        l_now = self.iteration + 1
-        num_episodes = self.schedule[self.iteration]
-        one_slice = self.rewarded_slice == "all" and self._selection is None
-        if self._selection is None:
-            self._select(l_now, num_episodes)
-        missing = [m for m in range(num_episodes) if m not in self._partial]
-        # A simulator buys all rows in one rollout continuing the iteration's streams; single
-        # episodes (a robot, or episodes left to buy after a resume) have streams of their own.
-        slices = [missing] if one_slice else [[m] for m in missing]
-        for episodes in slices:
-            self._buy_slice(l_now, episodes, reseed=not one_slice)
-        bought = [self._partial[m] for m in range(num_episodes)]
-        self.rewarded.extend(torch.stack(bought, dim=len(self.trial_dims)))
-        self._pending, self._selection, self._partial = self._selection, None, {}
-
-    def _select(self, l_now: int, num_episodes: int) -> None:
-        """Step 1: seed iteration l, choose the sampling policy (J'), commit the choice."""
-        started = time.perf_counter()
-        self._seed_iteration(l_now, num_episodes)
-        rules = self._candidate_rules()
-        chosen = torch.zeros(self.trial_dims, dtype=torch.long)
-        j_mean = j_all = free = None
-        reward_free_transitions = 0
-        if self.mode == "active":
-            self.selector.num_episodes = num_episodes
-            earlier = self.rewarded.episodes() if len(self.rewarded) else None
-            selection = self.selector.select(
-                self.policy, self._reward_free_candidates(), earlier, iteration=l_now
-            )
-            chosen = selection.index
-            j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
-            reward_free_transitions = selection.reward_free_transitions
-            if self.keep_reward_free:
-                free = selection.episodes.reshape(*self.trial_dims, -1, self.num_steps)
-        self._selection = {
-            "chosen": chosen,
-            "sampling_rule": rules[chosen],
-            "j_mean": j_mean,
-            "j_all": j_all,
-            "reward_free_transitions": reward_free_transitions,
-            "seconds": time.perf_counter() - started,
-        }
-        self._partial = {}
-        if self.store is not None:
-            self.store.put_selection(l_now, self._selection_row(self._selection), free)
-            self._on_commit()
-        self._reward_free_transitions += reward_free_transitions
-        if free is not None:
-            self.reward_free.extend(free)
-
-    @staticmethod
-    def _selection_row(selection: dict) -> dict:
-        return {k: v.tolist() if isinstance(v, torch.Tensor) else v for k, v in selection.items()}
-
-    def _seed_slice(self, l_now: int, episode: int, rows: int) -> None:
-        """Re-seed the policy stream and the rewarded env for episode m of iteration l."""
-        self.generator.manual_seed(slice_seed(self.seed, l_now, episode, "policy"))
-        if self.trial_seeds is not None:
-            self.policy.block_generators = [
-                torch.Generator().manual_seed(slice_seed(s, l_now, episode, "policy"))
-                for s in self.trial_seeds
-            ]
-        blocks = None
-        if self.trial_seeds is not None:
-            blocks = [slice_seed(s, l_now, episode, "rewarded_env") for s in self.trial_seeds]
-        seed = slice_seed(self.seed, l_now, episode, "rewarded_env")
-        seed_env(self._env_for(rows), seed, blocks)
-
-    def _buy_slice(self, l_now: int, episodes: list[int], *, reseed: bool) -> None:
-        """Buy episodes ``episodes`` (indices m) of iteration l and commit them.
-
-        An episode with a bad reward (NaN, inf) is reported by index; the valid episodes of
-        the slice are committed first.
-        """
-        trials = math.prod(self.trial_dims)
-        rows = trials * len(episodes)
-        if reseed:
-            self._seed_slice(l_now, episodes[0], rows)
-        selection = self._selection
-        chosen = selection["chosen"]
-        where = f" (stored in {self.checkpoint_path})" if self.checkpoint_path else ""
-        try:
-            bought = self._collect(
-                self._env_for(rows),
-                self._with_rule(selection["sampling_rule"]),  # one candidate per trial
-                num_episodes=len(episodes),
-                num_steps=self.num_steps,
-                rewarded=True,
-                iteration=l_now,
-                policy_id=chosen,
-                validate=False,
-            )
-        except Exception as error:
-            raise RuntimeError(
-                f"collecting the rewarded episodes of iteration {l_now} failed: "
-                f"{type(error).__name__}: {error}. The {len(self.rewarded)} episodes bought "
-                f"before (per trial) are kept in api.rewarded{where}; none of this batch was "
-                "stored"
-            ) from error
-        good, bad = {}, []
-        for i, m in enumerate(episodes):
-            one = bought[..., i : i + 1, :]
-            try:
-                validate_episodes(one, rewarded=True)
-            except ValueError as error:
-                bad.append(f"episode {m}{self._trial_of_bad(one)}: {error}")
-            else:
-                good[m] = one.squeeze(-2)
-        if self.store is not None and good:
-            self.store.put_episodes(l_now, good)
-            self._on_commit()
-        self._partial.update(good)
-        if bad:
-            raise ValueError(
-                f"iteration {l_now}: {'; '.join(bad)}. The {len(good)} valid episodes of this "
-                f"slice are kept{where}; a resume buys the others again"
-            )
-
-    def _trial_of_bad(self, one: TensorDict) -> str:
-        """`` of trial t`` for the first trial whose episode fails the checks (trials only)."""
-        for t in range(math.prod(self.trial_dims)) if self.trial_dims else ():
-            try:
-                validate_episodes(one.reshape(-1, *one.shape[-2:])[t : t + 1], rewarded=True)
-            except ValueError:
-                return f" of trial {t}"
-        return ""
-
-    def _collect(self, env: EnvBase, policy, **kwargs):
-        """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
-        if self.collector is None:
-            return collect_episodes(env, policy, **kwargs)
-        kwargs.pop("validate", None)  # (the collector's episodes are checked as they come)
-        return collect_with_collector(self.collector, policy, **kwargs)
 
     def step(self) -> IterationRecord:
         """Run one iteration of Algorithm 1 and return its record."""
@@ -792,143 +410,6 @@ class ActivePolicyIteration:
             self._close_store()
         return record
 
-    # -- durable state -----------------------------------------------------------------------
-
-    def _config(self) -> dict:
-        """What gives stored data its meaning: a resume must agree on all of it.
-
-        λ, the device, the worker processes and the evaluation callback are left out: they may
-        change on resume (a fit that failed for a bad λ can be redone with a better one).
-        """
-        last = len(self.schedule) + 1
-        trials = math.prod(self.trial_dims)
-        config = {
-            "schedule": self.schedule,
-            "num_steps": self.num_steps,
-            "gamma": self.gamma,
-            "mode": self.mode,
-            "num_repeats": self.num_repeats,
-            "num_trials": self.num_trials,
-            "seed": self.seed,
-            "trial_seeds": self.trial_seeds,
-            "psi_mode": self.psi.mode,
-            "knn_k": self.psi.k,
-            "improvement": self.improvement,
-            "beta": self.beta,
-            "tie_break": self.tie_break,
-            "candidate_offsets": list(self.candidate_offsets),
-            "epsilons": None
-            if self.improvement == "softmax"
-            else [self.epsilon_schedule(l) for l in range(1, last + 1)],
-            "initial_theta": self._initial_theta.tolist(),
-            "basis": fingerprint(self.basis),
-            "env": fingerprint(self._env_for(trials * self.schedule[0])),
-            "keep_reward_free": self.keep_reward_free,
-            "rewarded_slice": self.rewarded_slice,
-            "initial_episodes": None
-            if self._warm is None
-            else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
-            "fit": self.fit,
-        }
-        return config
-
-    def _on_commit(self) -> None:
-        """Called after every commit to the store (a hook for tests and testing aids)."""
-
-    def _restore(self, stored: StoredRun, path: Path | None = None) -> None:
-        """Rebuild the run's state from a verified store; nothing is changed if it fails.
-
-        Raises:
-            CorruptRunError: the stored rows do not form a run of this schedule.
-        """
-        path = path or self.checkpoint_path
-        done = len(stored.records)
-        if sorted(stored.records) != list(range(1, done + 1)) or done > len(self.schedule):
-            raise CorruptRunError(f"the run {path} holds records {sorted(stored.records)}")
-        rewarded = EpisodeBuffer(rewarded=True, capacity=self.rewarded.capacity)
-        if self._warm is not None:  # the warm start comes first, as in a fresh run
-            rewarded.extend(self._warm)
-        reward_free = EpisodeBuffer(rewarded=False, capacity=self.reward_free.capacity)
-        free_transitions = 0
-        selection, partial = None, {}
-        nxt = done + 1
-        if nxt <= len(self.schedule) and nxt in stored.selections:
-            if stored.episodes.get(nxt) or self.rewarded_slice == "episode":
-                selection = dict(stored.selections[nxt])
-                partial = dict(stored.episodes.get(nxt, {}))
-        try:
-            for l_now in range(1, done + 1 + (selection is not None)):
-                row = stored.selections.get(l_now)
-                if row is None:
-                    raise CorruptRunError(
-                        f"the run {path} lacks the selection of iteration {l_now}"
-                    )
-                free_transitions += int(row["reward_free_transitions"])
-                if self.keep_reward_free and l_now in stored.free:
-                    reward_free.extend(stored.free[l_now])
-            for l_now in range(1, done + 1):
-                got = stored.episodes.get(l_now, {})
-                if sorted(got) != list(range(self.schedule[l_now - 1])):
-                    raise CorruptRunError(
-                        f"the run {path} holds episodes {sorted(got)} of iteration {l_now}, "
-                        f"which bought {self.schedule[l_now - 1]}"
-                    )
-                rewarded.extend(torch.stack([got[m] for m in sorted(got)], len(self.trial_dims)))
-            for m, episode in partial.items():
-                if not 0 <= m < self.schedule[nxt - 1]:
-                    raise CorruptRunError(f"the run {path} holds episode {m} of iteration {nxt}")
-                validate_episodes(episode.unsqueeze(-2), rewarded=True)
-            history = [IterationRecord(**r) for _, r in sorted(stored.records.items())]
-            theta = self.theta
-            if history:
-                theta = torch.tensor(history[-1].theta, dtype=torch.float64)
-                if theta.shape != self.theta.shape:
-                    raise CorruptRunError(f"the run {path} holds θ of shape {tuple(theta.shape)}")
-        except (ValueError, TypeError, KeyError, RuntimeError) as error:
-            if isinstance(error, CorruptRunError):
-                raise
-            raise CorruptRunError(f"the run {path} cannot be restored: {error}") from None
-        if selection is not None:
-            selection["chosen"] = torch.tensor(selection["chosen"], dtype=torch.long)
-            selection["sampling_rule"] = torch.tensor(
-                selection["sampling_rule"], dtype=torch.float64
-            )
-        pending = None
-        if selection is not None and len(partial) == self.schedule[nxt - 1]:
-            last = [partial[m] for m in sorted(partial)]
-            rewarded.extend(torch.stack(last, len(self.trial_dims)))
-            pending, selection, partial = selection, None, {}
-        # everything checked: now change the object
-        self.rewarded, self.reward_free = rewarded, reward_free
-        self._reward_free_transitions = free_transitions
-        self.history, self.iteration, self.theta = history, done, theta
-        self._pending, self._selection, self._partial = pending, selection, partial
-        self.policy = self._policy(self.theta, self.iteration + 1)
-
-    def load(self, path: str | os.PathLike) -> None:
-        """Take over the state of the run stored at ``path`` (read only; for inspection or a
-        copy: to continue a run, build it with ``checkpoint_path=path, resume=True``).
-
-        Raises:
-            CorruptRunError: the file fails a check, or was made with other settings; the
-                object is then left as it was.
-        """
-        stored = RunStore.read(path)
-        mine = RunStore.normalise(self._config())
-        if stored.config != mine:
-            differ = sorted(
-                k for k in stored.config.keys() | mine.keys() if stored.config.get(k) != mine.get(k)
-            )
-            raise CorruptRunError(
-                f"the run stored in {path} was made with other settings: {differ}"
-            )
-        self._restore(stored, Path(path))
-
-    def _close_store(self) -> None:
-        """Close the run's store (its lock is released); the object keeps its state."""
-        if self.store is not None:
-            self.store.close()
-
     def close(self) -> None:
         """Close the run's store (releasing its lock) and the envs built from env factories
         (rewarded and reward-free), e.g. the worker processes of ``env=lambda rows:
@@ -952,17 +433,3 @@ class ActivePolicyIteration:
         if self.iteration == len(self.schedule):
             self._close_store()  # (a resumed run that was complete already)
         return self.history
-
-
-def _warm_start(data, trial_dims: tuple[int, ...]) -> TensorDictBase | None:
-    """``initial_episodes`` in the library's format ``[*T, M, N]`` (None: no warm start)."""
-    if data is None:
-        return None
-    batches = [data] if isinstance(data, TensorDictBase) else list(data)
-    if not batches:
-        return None
-    joined = EpisodeBuffer(rewarded=True, capacity=sum(b.numel() for b in batches))
-    for batch in batches:  # consecutive collector batches: cut trajectories are joined
-        joined.extend(batch)
-    episodes = joined.episodes()
-    return episodes.expand(*trial_dims, *episodes.shape).clone() if trial_dims else episodes

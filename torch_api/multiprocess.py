@@ -32,8 +32,10 @@ from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
 from torch_api.actions import ActionEncoding
-from torch_api.data import _episodes_from_rollout, seed_env, validate_episodes
+from torch_api.buffer import validate_episodes
+from torch_api.episodes import _episodes_from_rollout
 from torch_api.lifetime import die_with_parent
+from torch_api.streams import seed_env
 
 __all__ = ["collect_episodes_in_workers"]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -10,6 +11,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from torch_api.candidates import PAPER_EPSILON_OFFSETS, candidate_epsilons
+from torch_api.criterion import Criterion, j_eq46, j_values
 from torch_api.data import (
     EnvPerBatch,
     as_episodes,
@@ -18,14 +21,14 @@ from torch_api.data import (
     joinable,
     seed_env,
 )
-from torch_api.design import build_design
 from torch_api.lstd import lstd_j_values
 from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import ActionProbsPolicy
 from torch_api.psi import PsiHat
-from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
+from torch_api.solve import DEFAULT_LAMBDA
 
 __all__ = [
+    "PAPER_EPSILON_OFFSETS",
     "PolicyStack",
     "SamplingPolicySelector",
     "Selection",
@@ -33,124 +36,7 @@ __all__ = [
     "j_values",
 ]
 
-PAPER_EPSILON_OFFSETS = (0.0, 0.15, 0.5, 0.85)  # eq. 59: candidates ε_l + offset
 FITS = ("brm", "lstd")  # the paper's least-squares fit on psi_hat, or LSTD-Q (torch_api.lstd)
-_STATE_ACTION_KEYS = (
-    "observation",
-    "action",
-    "sample_probs",
-    "sample_log_prob",
-    ("next", "observation"),
-    ("next", "terminated"),
-    "mask",
-)
-
-
-def candidate_epsilons(epsilon: float, offsets: Sequence[float] = PAPER_EPSILON_OFFSETS) -> list:
-    """ε of the sampling-policy candidates of eq. 59: ``[ε + o for o in offsets]`` capped at 1."""
-    if not 0 <= epsilon <= 1:
-        raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}")
-    return [min(1.0, epsilon + o) for o in offsets]
-
-
-def j_values(
-    candidate_episodes: TensorDictBase,
-    earlier_episodes: TensorDictBase | None,
-    policy,
-    psi: PsiHat,
-    lam: float = DEFAULT_LAMBDA,
-) -> torch.Tensor:
-    """J of every candidate from reward-free episodes (eq. 42-46, Algorithm 2 steps 2-4).
-
-    For each leading index (a repeat z, a trial, ...): ``D̄_0`` = all candidates' episodes plus
-    the earlier sampling sets; psi_hat is computed on ``D̄_0`` under the evaluation policy;
-    ``Ũ = (1/n_0) Σ_{D̄_0} w x xᵀ``; candidate k's set ``Π_k`` = its own episodes plus the
-    earlier sets, and ``J_k = tr(Ũ (A_k + λI)^{-1} C_k (A_k + λI)^{-1})``, all K in one
-    batched call.
-
-    Args:
-        candidate_episodes: reward-free episodes ``[..., K, M, N]``.
-        earlier_episodes: earlier sampling sets ``[M', N']`` (rewards, if any, are ignored) or
-            None in the first iteration; TorchRL data as TorchRL produces it (a ``Collector``'s
-            batch, ``env.rollout`` output) is converted (:func:`~torch_api.data.as_episodes`).
-            Episodes of another length than the candidates' are padded (masked).
-        policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
-            ``[...]``.
-        psi: the psi_hat module.
-        lam: λ.
-
-    Returns:
-        J ``[..., K]`` (float64).
-    """
-    if candidate_episodes.batch_dims < 3:
-        raise ValueError(
-            "candidate_episodes must have shape [..., K, M, N], "
-            f"got {tuple(candidate_episodes.shape)}"
-        )
-    cand = candidate_episodes.select(*_STATE_ACTION_KEYS, strict=False)
-    prev = None
-    if earlier_episodes is not None:
-        earlier_episodes = as_episodes(earlier_episodes, rewarded=False)
-    if earlier_episodes is not None and earlier_episodes.shape[0] > 0:
-        prev = earlier_episodes.select(*_STATE_ACTION_KEYS, strict=False)
-        cand, prev = joinable([cand, prev])
-    *lead, num_candidates, num_episodes, num_steps = cand.shape
-    # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
-    # the collapse warning is for fits on rewarded data, not for this reward-free pool.
-    if psi.row_local:
-        # Each row's psi_hat depends on the row alone: the earlier sets, which every Π_k and
-        # every repeat shares, get their design once, not once per repeat.
-        own = build_design(cand, policy, psi, min_ess_fraction=0.0)  # [..., K, M·N, B]
-        own_x, own_w, n_own = own.x, own.w, own.num_samples.to(torch.float64)
-        shared = None if prev is None else build_design(prev, policy, psi, min_ess_fraction=0.0)
-    else:
-        # Grouped or k-NN psi_hat averages over the data set D̄_0 of each repeat (all K
-        # candidates' episodes, plus the earlier sets when there are any): pool first.
-        pieces = [cand.reshape(*lead, num_candidates * num_episodes, num_steps)]
-        if prev is not None:
-            own_lead = prev.batch_dims - 2  # earlier sets [*T, M', N]: broadcast over repeats
-            prev = prev.reshape(
-                *prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:]
-            )
-            pieces.append(prev.expand(*lead, *prev.shape[-2:]).clone())
-        design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
-        split = num_candidates * num_episodes * num_steps
-
-        def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
-            return t.narrow(len(lead), 0, split).reshape(
-                *lead, num_candidates, num_episodes * num_steps, *t.shape[len(lead) + 1 :]
-            )
-
-        own_x, own_w = own_rows(design.x), own_rows(design.w)
-        n_own = own_rows(design.mask).sum(-1).to(torch.float64)
-        shared = None
-        if prev is not None:
-            shared = design._replace(
-                x=design.x.narrow(len(lead), split, design.x.shape[len(lead)] - split),
-                w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
-                num_samples=design.num_samples - n_own.sum(-1),
-            )
-    # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
-    # D̄_0 is their sum, with no pass of its own.
-    a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
-    c_own = weighted_moment(own_x, own_w.pow(2))
-    a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
-    n_shared = n_own.new_zeros(())
-    if shared is not None:
-        stretch = [1] * (len(lead) + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
-        a_shared = weighted_moment(shared.x, shared.w)
-        a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
-        c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
-        n_shared = shared.num_samples.to(torch.float64)
-        n_shared = n_shared.reshape(*n_shared.shape, *stretch)
-    n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
-    n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
-    u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
-    a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
-    c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
-    if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):
-        raise ValueError("the psi_hat design of the reward-free data contains NaN or inf")
-    return j_from_moments(a_k, c_k, u_tilde.unsqueeze(-3), lam)
 
 
 class PolicyStack(ActionProbsPolicy):
@@ -246,6 +132,10 @@ class SamplingPolicySelector:
         fit: the learner whose error J estimates: ``"brm"`` (the paper's least-squares fit on
             psi_hat, :func:`j_values`) or ``"lstd"`` (LSTD-Q, beyond the paper,
             :func:`~torch_api.lstd.lstd_j_values`).
+        criterion: with ``fit="brm"``, the criterion of the candidates' pooled moments
+            (:data:`~torch_api.criterion.Criterion`, ``(PooledMoments, lam) -> [..., K]``):
+            J of eq. 46 (:func:`~torch_api.criterion.j_eq46`) by default; a criterion of one's
+            own is a function of the same signature.
         collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
             (:func:`~torch_api.data.collect_with_collector`): each candidate's ``Z·M``
             reward-free episodes are then read from it, candidate by candidate, instead of from
@@ -253,15 +143,16 @@ class SamplingPolicySelector:
             parameters only.
 
     Example:
-        >>> from envs.chain_walk import ChainWalkEnv, CENTERS, TAU
+        >>> from torchrl.envs import GymEnv
         >>> from torch_api.basis import GaussianActionBasis
         >>> from torch_api.policies import LinearQPolicy
-        >>> basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU,
-        ...                             num_actions=2)
-        >>> psi = PsiHat(basis=basis, gamma=0.9, mode="grouped")
-        >>> pi = LinearQPolicy(basis=basis, theta=torch.ones(12), epsilon=0.15)
-        >>> selector = SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e, seed=0),
-        ...                                   psi=psi, num_episodes=3, num_steps=10)
+        >>> env = GymEnv("CartPole-v1")
+        >>> basis = GaussianActionBasis(centers=torch.zeros(1, 4), tau=1.0, num_actions=2)
+        >>> psi = PsiHat(basis=basis, gamma=0.9, mode="single")
+        >>> pi = LinearQPolicy(basis=basis, theta=torch.ones(basis.num_features), epsilon=0.15,
+        ...                    action_spec=env.action_spec)
+        >>> selector = SamplingPolicySelector(env=env, psi=psi, num_episodes=2, num_steps=5,
+        ...                                   num_repeats=2)
         >>> choice = selector.select(pi, [pi.with_rule(epsilon=e) for e in (0.15, 0.65)])
         >>> choice.j_mean.shape
         torch.Size([2])
@@ -282,6 +173,7 @@ class SamplingPolicySelector:
         num_workers: int = 0,
         fit: str = "brm",
         collector: Callable | None = None,
+        criterion: Criterion = j_eq46,
     ) -> None:
         for name, value in (
             ("num_episodes", num_episodes),
@@ -309,6 +201,13 @@ class SamplingPolicySelector:
         if fit not in FITS:
             raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
         self.fit = fit
+        if fit == "lstd" and criterion is not j_eq46:
+            raise ValueError("criterion applies to fit='brm' (LSTD-Q has its own J)")
+        self.criterion = criterion
+        # the J of the learner, chosen once: LSTD-Q's, or the criterion of the pooled moments
+        self._j = (
+            lstd_j_values if fit == "lstd" else functools.partial(j_values, criterion=criterion)
+        )
         if collector is not None and num_workers:
             raise ValueError("give either collector or num_workers, not both")
         self.collector = collector
@@ -461,8 +360,7 @@ class SamplingPolicySelector:
             episodes = episodes.to(self.device)
             earlier = None if earlier is None else earlier.to(self.device)
             policy = policy.to_device(self.device)
-        j = lstd_j_values if self.fit == "lstd" else j_values
-        return j(episodes, earlier, policy, self.psi, self.lam).cpu()
+        return self._j(episodes, earlier, policy, self.psi, self.lam).cpu()
 
     def select(
         self,

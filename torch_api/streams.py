@@ -1,4 +1,9 @@
-"""Random streams of an environment: one seed for all rows, or one stream per block of rows.
+"""Trials and random streams: one layer from which every generator of a run is derived.
+
+:class:`TrialStreams` derives every seed of a run from (seed, trial, iteration, role); the
+functions below say how an environment is seeded with them.
+
+Random streams of an environment: one seed for all rows, or one stream per block of rows.
 
 An environment that runs several independent trials side by side (rows laid out trial-major)
 can give each trial's rows a random stream of their own, so that a batched run of T trials
@@ -18,7 +23,17 @@ import inspect
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
-__all__ = ["BlockSeeded", "has_block_seeds", "seed_env"]
+import numpy as np
+import torch
+
+__all__ = [
+    "BlockSeeded",
+    "TrialStreams",
+    "derive_seed",
+    "has_block_seeds",
+    "seed_env",
+    "slice_seed",
+]
 
 
 @runtime_checkable
@@ -27,7 +42,18 @@ class BlockSeeded(Protocol):
 
     ``set_block_seeds(seeds)`` seeds block ``b`` (rows ``b·R … (b+1)·R - 1`` of a batch of
     ``len(seeds)·R`` rows) from ``seeds[b]``. This project's ``ChainWalkEnv`` and
-    ``BattingEnv`` implement it.
+    ``BattingEnv`` implement it; any env that does (an extension point) gets per-trial streams
+    from :func:`seed_env`, any other is seeded with ``set_seed``.
+
+    Example:
+        >>> class Walk:  # a sketch of an env's seeding part
+        ...     def set_seed(self, seed): self.seeds = [seed]
+        ...     def set_block_seeds(self, seeds): self.seeds = list(seeds)
+        >>> env = Walk()
+        >>> isinstance(env, BlockSeeded), has_block_seeds(env)
+        (True, True)
+        >>> seed_env(env, 0, block_seeds=[11, 22]); env.seeds
+        [11, 22]
     """
 
     def set_block_seeds(self, seeds: Sequence[int]) -> None: ...
@@ -49,3 +75,111 @@ def seed_env(env, seed: int, block_seeds: Sequence[int] | None = None) -> None:
         env.set_block_seeds(list(block_seeds))
     else:
         env.set_seed(seed)
+
+
+# -- the run's streams: every generator from (seed, trial, iteration, role) -------------------
+
+STREAMS = {  # the roles of one iteration's streams (the numbers enter the seed derivation)
+    "policy": 0,
+    "reward_free_env": 1,
+    "rewarded_env": 2,
+    "evaluation": 3,
+    "trial": 4,
+    "reward_free_policy": 5,
+}
+SLICE_STREAMS = {"policy": 6, "rewarded_env": 7}  # per-episode slices (rewarded_slice="episode")
+
+
+def derive_seed(seed: int, iteration: int, stream: str) -> int:
+    """Independent seed of one random stream of one iteration (NumPy ``SeedSequence``).
+
+    Every iteration re-seeds its streams from ``(seed, iteration, stream)``, so an interrupted
+    run resumed from a checkpoint draws exactly the numbers an uninterrupted run would have.
+    (``derive_seed(seed, t, "trial")`` is trial t's seed.)
+
+    Example:
+        >>> a, b = derive_seed(0, 1, "policy"), derive_seed(0, 2, "policy")
+        >>> a == derive_seed(0, 1, "policy") and a != b
+        True
+    """
+    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), STREAMS[stream]]
+    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
+    """Seed of one stream of rewarded episode m (0-based) of iteration l, for runs that buy
+    one episode at a time (``rewarded_slice="episode"``): a resume continues at any episode."""
+    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), SLICE_STREAMS[stream], int(episode)]
+    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+class TrialStreams:
+    """The one place a run's random streams come from: (seed, trial, iteration, role).
+
+    A run has a seed and, with T trials side by side, one seed per trial. Each iteration l
+    derives, per role (``STREAMS``: the policy's sampling, the rewarded env, the reward-free
+    env, the reward-free sampling, the evaluation), one seed for the run (:func:`derive_seed`)
+    and one per trial (for per-trial streams: the policies' ``block_generators`` and the envs'
+    ``set_block_seeds``). A run that buys one episode at a time derives its streams from
+    (seed, trial, iteration, episode, role) instead (:func:`slice_seed`).
+
+    Args:
+        seed: the run's seed.
+        trial_seeds: one seed per trial, or None (a single run).
+
+    Example:
+        >>> streams = TrialStreams(seed=0, trial_seeds=[11, 22])
+        >>> seed, blocks = streams.env_seeds(1, "rewarded_env")
+        >>> blocks == [derive_seed(11, 1, "rewarded_env"), derive_seed(22, 1, "rewarded_env")]
+        True
+        >>> len(streams.block_generators(1, "policy"))
+        2
+    """
+
+    def __init__(self, *, seed: int, trial_seeds: Sequence[int] | None = None) -> None:
+        self.seed = int(seed)
+        self.trial_seeds = None if trial_seeds is None else [int(s) for s in trial_seeds]
+
+    @classmethod
+    def for_trials(
+        cls, seed: int, num_trials: int | None, trial_seeds: Sequence[int] | None = None
+    ) -> TrialStreams:
+        """The streams of a run of ``num_trials`` trials (None: a single run); without
+        ``trial_seeds``, trial t's seed is ``derive_seed(seed, t, "trial")``."""
+        if num_trials is None and trial_seeds is not None:
+            raise ValueError("trial_seeds needs num_trials")
+        if num_trials is not None and trial_seeds is None:
+            trial_seeds = [derive_seed(seed, t, "trial") for t in range(num_trials)]
+        if trial_seeds is not None and len(trial_seeds) != num_trials:
+            raise ValueError(
+                f"trial_seeds must hold num_trials = {num_trials} seeds, got {len(trial_seeds)}"
+            )
+        return cls(seed=seed, trial_seeds=trial_seeds)
+
+    def run_seed(self, iteration: int, role: str) -> int:
+        """The run's seed of ``role`` in iteration l."""
+        return derive_seed(self.seed, iteration, role)
+
+    def block_seeds(self, iteration: int, role: str) -> list[int]:
+        """Per-trial seeds of ``role`` in iteration l (runs with trials only)."""
+        if self.trial_seeds is None:
+            raise ValueError("block_seeds needs a run with num_trials")
+        return [derive_seed(s, iteration, role) for s in self.trial_seeds]
+
+    def block_generators(self, iteration: int, role: str) -> list[torch.Generator] | None:
+        """One generator per trial for ``role`` in iteration l, or None without trials."""
+        if self.trial_seeds is None:
+            return None
+        return [torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, role)]
+
+    def env_seeds(self, iteration: int, role: str) -> tuple[int, list[int] | None]:
+        """The run's seed and, with trials, the per-trial seeds of an env's ``role``."""
+        blocks = self.block_seeds(iteration, role) if self.trial_seeds is not None else None
+        return self.run_seed(iteration, role), blocks
+
+    def slice_seeds(self, iteration: int, episode: int, role: str) -> tuple[int, list | None]:
+        """The run's and the per-trial seeds of ``role`` for rewarded episode m of l."""
+        blocks = None
+        if self.trial_seeds is not None:
+            blocks = [slice_seed(s, iteration, episode, role) for s in self.trial_seeds]
+        return slice_seed(self.seed, iteration, episode, role), blocks

@@ -1,0 +1,54 @@
+"""Argument checks shared by the loop and its parts (``ValueError`` naming the value)."""
+
+from __future__ import annotations
+
+import math
+import numbers
+import warnings
+
+HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
+
+
+def _check_lambda(lam: float) -> None:
+    """λ must be a finite number > 0; a huge one (θ shrunk to about 0) is warned about."""
+    if not (isinstance(lam, numbers.Real) and lam > 0):
+        raise ValueError(f"lam must be > 0, got {lam}")
+    if not math.isfinite(lam):
+        raise ValueError(f"lam must be finite, got {lam}")
+    if lam > HUGE_LAMBDA:
+        warnings.warn(
+            f"lam = {lam:g} is huge: the ridge penalty dominates every design and θ shrinks to "
+            "about 0 whatever the rewards",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+def _check_schedule(schedule) -> list[int]:
+    """Episodes bought per iteration ``(M_1, …, M_L)``: a non-empty list of integers >= 1."""
+    if not schedule or not all(
+        isinstance(m, numbers.Integral)
+        and not isinstance(m, bool)
+        and m >= 1
+        or isinstance(m, float)
+        and m.is_integer()
+        and m >= 1
+        for m in schedule
+    ):
+        raise ValueError(
+            "schedule must be a non-empty list of integer episode counts >= 1, "
+            f"got {list(schedule)}"
+        )
+    return [int(m) for m in schedule]
+
+
+def _count(name: str, value, minimum: int = 1) -> int:
+    """``value`` as an int >= minimum; a non-integer (2.5, True, "3") is refused."""
+    integral = isinstance(value, numbers.Integral) or (
+        isinstance(value, float) and value.is_integer()
+    )
+    if isinstance(value, bool) or not integral:
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+    return int(value)

@@ -1,0 +1,207 @@
+"""The active-learning criterion: the pooled moments of each candidate, and J of them.
+
+Three J functions, from the most raw to the most assembled; a user calls:
+
+* :func:`j_values` with reward-free *episodes* of K candidates (what
+  :class:`~torch_api.selector.SamplingPolicySelector` does): psi_hat, importance weights,
+  pooling with the earlier sets (:func:`pooled_moments`), then a criterion;
+* :func:`~torch_api.solve.j_from_moments` with normalised *moments* ``A``, ``C``, ``Ũ`` already
+  at hand (the criterion of eq. 46 itself, :func:`j_eq46`, calls it);
+* :func:`~torch_api.solve.j_criterion` with one sampling set's *design rows* ``x``, ``w``
+  (``[..., n, B]``): the textbook form of eq. 40-46, for analysis and tests.
+
+A criterion is any function ``(moments: PooledMoments, lam: float) -> Tensor [..., K]``
+(smaller is better): the paper's J (eq. 46) is :func:`j_eq46`, the default; another criterion
+(e.g. one of the paper's "future work" variants) is a new function of the same signature,
+passed as ``criterion=`` to :func:`j_values` or to the selector.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+from tensordict import TensorDictBase
+
+from torch_api.design import build_design
+from torch_api.episodes import as_episodes, joinable
+from torch_api.psi import PsiHat
+from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
+
+__all__ = ["Criterion", "PooledMoments", "j_eq46", "j_values", "pooled_moments"]
+
+_STATE_ACTION_KEYS = (
+    "observation",
+    "action",
+    "sample_probs",
+    "sample_log_prob",
+    ("next", "observation"),
+    ("next", "terminated"),
+    "mask",
+)
+
+
+class PooledMoments(NamedTuple):
+    """What every criterion sees: each candidate's pooled, normalised moments (eq. 42-45).
+
+    Attributes:
+        a: ``A_k = (1/n_k) Σ_{Π_k} w x xᵀ``, ``[..., K, B, B]``.
+        c: ``C_k = (1/n_k²) Σ_{Π_k} w² x xᵀ``, ``[..., K, B, B]``.
+        u: ``Ũ = (1/n_0) Σ_{D̄_0} w x xᵀ`` over all candidates' and earlier rows,
+            ``[..., 1, B, B]`` (broadcasts against ``a``).
+        n: ``n_k``, the rows of ``Π_k``, ``[..., K]``.
+    """
+
+    a: torch.Tensor
+    c: torch.Tensor
+    u: torch.Tensor
+    n: torch.Tensor
+
+
+Criterion = Callable[[PooledMoments, float], torch.Tensor]
+"""The signature of a criterion: ``(moments, lam) -> [..., K]``, smaller is better."""
+
+
+def j_eq46(moments: PooledMoments, lam: float = DEFAULT_LAMBDA) -> torch.Tensor:
+    """The paper's criterion: ``J_k = tr(Ũ (A_k + λI)^{-1} C_k (A_k + λI)^{-1})`` (eq. 46).
+
+    Example (a criterion of one's own has this signature):
+        >>> eye = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+        >>> moments = PooledMoments(a=eye, c=eye / 10, u=eye[:1], n=torch.tensor([10.0, 10.0]))
+        >>> j_eq46(moments, lam=0.0).tolist()
+        [0.30000000000000004, 0.30000000000000004]
+        >>> def trace_of_c(moments, lam):  # another criterion: a new function, same signature
+        ...     return moments.c.diagonal(dim1=-2, dim2=-1).sum(-1)
+        >>> trace_of_c(moments, 0.0).tolist()
+        [0.30000000000000004, 0.30000000000000004]
+    """
+    return j_from_moments(moments.a, moments.c, moments.u, lam)
+
+
+def j_values(
+    candidate_episodes: TensorDictBase,
+    earlier_episodes: TensorDictBase | None,
+    policy,
+    psi: PsiHat,
+    lam: float = DEFAULT_LAMBDA,
+    *,
+    criterion: Criterion = j_eq46,
+) -> torch.Tensor:
+    """J of every candidate from reward-free episodes (eq. 42-46, Algorithm 2 steps 2-4).
+
+    The call a user makes with episodes in hand: :func:`pooled_moments`, then ``criterion``
+    (J of eq. 46 by default), all K candidates and all leading indices in one batched call.
+
+    Args:
+        candidate_episodes: reward-free episodes ``[..., K, M, N]``.
+        earlier_episodes: earlier sampling sets ``[M', N']`` or None (see
+            :func:`pooled_moments`).
+        policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
+            ``[...]``.
+        psi: the psi_hat module.
+        lam: λ.
+        criterion: ``(PooledMoments, lam) -> [..., K]`` (:data:`Criterion`).
+
+    Returns:
+        J ``[..., K]`` (float64).
+    """
+    return criterion(pooled_moments(candidate_episodes, earlier_episodes, policy, psi), lam)
+
+
+def pooled_moments(
+    candidate_episodes: TensorDictBase,
+    earlier_episodes: TensorDictBase | None,
+    policy,
+    psi: PsiHat,
+) -> PooledMoments:
+    """The pooled moments of every candidate from reward-free episodes (eq. 42-45).
+
+    For each leading index (a repeat z, a trial, ...): ``D̄_0`` = all candidates' episodes plus
+    the earlier sampling sets; psi_hat is computed on ``D̄_0`` under the evaluation policy;
+    ``Ũ = (1/n_0) Σ_{D̄_0} w x xᵀ``; candidate k's set ``Π_k`` = its own episodes plus the
+    earlier sets, with ``A_k = (1/n_k) Σ_{Π_k} w x xᵀ`` and ``C_k = (1/n_k²) Σ_{Π_k} w² x xᵀ``.
+
+    Args:
+        candidate_episodes: reward-free episodes ``[..., K, M, N]``.
+        earlier_episodes: earlier sampling sets ``[M', N']`` (rewards, if any, are ignored) or
+            None in the first iteration; TorchRL data as TorchRL produces it (a ``Collector``'s
+            batch, ``env.rollout`` output) is converted (:func:`~torch_api.data.as_episodes`).
+            Episodes of another length than the candidates' are padded (masked).
+        policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
+            ``[...]``.
+        psi: the psi_hat module.
+
+    Returns:
+        :class:`PooledMoments` with ``a``, ``c`` ``[..., K, B, B]``, ``u`` ``[..., 1, B, B]``
+        and ``n`` ``[..., K]``.
+    """
+    if candidate_episodes.batch_dims < 3:
+        raise ValueError(
+            "candidate_episodes must have shape [..., K, M, N], "
+            f"got {tuple(candidate_episodes.shape)}"
+        )
+    cand = candidate_episodes.select(*_STATE_ACTION_KEYS, strict=False)
+    prev = None
+    if earlier_episodes is not None:
+        earlier_episodes = as_episodes(earlier_episodes, rewarded=False)
+    if earlier_episodes is not None and earlier_episodes.shape[0] > 0:
+        prev = earlier_episodes.select(*_STATE_ACTION_KEYS, strict=False)
+        cand, prev = joinable([cand, prev])
+    *lead, num_candidates, num_episodes, num_steps = cand.shape
+    # Far candidates (ε up to 1) have skewed weights by design, and J measures exactly that:
+    # the collapse warning is for fits on rewarded data, not for this reward-free pool.
+    if psi.row_local:
+        # Each row's psi_hat depends on the row alone: the earlier sets, which every Π_k and
+        # every repeat shares, get their design once, not once per repeat.
+        own = build_design(cand, policy, psi, min_ess_fraction=0.0)  # [..., K, M·N, B]
+        own_x, own_w, n_own = own.x, own.w, own.num_samples.to(torch.float64)
+        shared = None if prev is None else build_design(prev, policy, psi, min_ess_fraction=0.0)
+    else:
+        # Grouped or k-NN psi_hat averages over the data set D̄_0 of each repeat (all K
+        # candidates' episodes, plus the earlier sets when there are any): pool first.
+        pieces = [cand.reshape(*lead, num_candidates * num_episodes, num_steps)]
+        if prev is not None:
+            own_lead = prev.batch_dims - 2  # earlier sets [*T, M', N]: broadcast over repeats
+            prev = prev.reshape(
+                *prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:]
+            )
+            pieces.append(prev.expand(*lead, *prev.shape[-2:]).clone())
+        design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
+        split = num_candidates * num_episodes * num_steps
+
+        def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
+            return t.narrow(len(lead), 0, split).reshape(
+                *lead, num_candidates, num_episodes * num_steps, *t.shape[len(lead) + 1 :]
+            )
+
+        own_x, own_w = own_rows(design.x), own_rows(design.w)
+        n_own = own_rows(design.mask).sum(-1).to(torch.float64)
+        shared = None
+        if prev is not None:
+            shared = design._replace(
+                x=design.x.narrow(len(lead), split, design.x.shape[len(lead)] - split),
+                w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
+                num_samples=design.num_samples - n_own.sum(-1),
+            )
+    # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
+    # D̄_0 is their sum, with no pass of its own.
+    a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
+    c_own = weighted_moment(own_x, own_w.pow(2))
+    a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
+    n_shared = n_own.new_zeros(())
+    if shared is not None:
+        stretch = [1] * (len(lead) + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
+        a_shared = weighted_moment(shared.x, shared.w)
+        a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
+        c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
+        n_shared = shared.num_samples.to(torch.float64)
+        n_shared = n_shared.reshape(*n_shared.shape, *stretch)
+    n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
+    n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
+    u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
+    a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
+    c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
+    if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):
+        raise ValueError("the psi_hat design of the reward-free data contains NaN or inf")
+    return PooledMoments(a=a_k, c=c_k, u=u_tilde.unsqueeze(-3), n=n_k[..., 0, 0])

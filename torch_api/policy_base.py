@@ -1,0 +1,191 @@
+"""The base of the library's policies, the one a user extends: :class:`ActionProbsPolicy`.
+
+A policy of this library is a TensorDict module that gives action probabilities of observations
+(``action_probs``), draws an action from them with its own random stream(s), writes it in the
+env's action encoding and records the whole distribution (``sample_probs``), so that importance
+weights can later be computed against any other policy. A new policy family subclasses it and
+implements ``_action_probs(obs) -> [..., A]``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from torch_api.actions import ActionEncoding
+
+__all__ = ["ActionProbsPolicy"]
+
+
+_GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
+
+
+class ActionProbsPolicy(TensorDictModuleBase):
+    """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
+
+    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, draws an
+    action and writes ``action`` in the env's encoding and ``sample_probs`` (the distribution
+    the action was drawn from, ``[..., A]``, float64).
+
+    TorchRL's conventions: under ``set_exploration_type(ExplorationType.RANDOM)`` (a
+    ``Collector``'s default) or with no exploration type set, the action is sampled from
+    ``pi(·|s)``; under ``DETERMINISTIC``, ``MODE`` (or ``MEAN``) it is the mode of ``pi(·|s)``
+    (the greedy action; the lowest index among equal probabilities), and ``sample_probs`` is
+    then that one-hot distribution, the one the action was really drawn from. The draw uses the
+    policy's ``generator`` if it has one, else torch's global generator (so ``torch.manual_seed``
+    governs an unseeded policy, as it does TorchRL's actors).
+
+    A new policy family subclasses it and implements ``_action_probs`` (an extension point):
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> class AlwaysRight(ActionProbsPolicy):
+        ...     def _action_probs(self, obs):  # [..., d] -> [..., A], float64
+        ...         probs = torch.zeros(*obs.shape[:-1], self.num_actions, dtype=torch.float64)
+        ...         probs[..., -1] = 1.0
+        ...         return probs
+        >>> policy = AlwaysRight(num_actions=2, generator=torch.Generator().manual_seed(0))
+        >>> td = policy(TensorDict({"observation": torch.zeros(3, 1)}, batch_size=[3]))
+        >>> td["action"].tolist(), td["sample_probs"].shape
+        ([1, 1, 1], torch.Size([3, 2]))
+    """
+
+    def __init__(
+        self,
+        *,
+        num_actions: int,
+        one_hot: bool = False,
+        action_spec=None,
+        generator: torch.Generator | None = None,
+        observation_key="observation",
+        action_key="action",
+        probs_key="sample_probs",
+    ) -> None:
+        super().__init__()
+        self.num_actions = int(num_actions)
+        self.one_hot = one_hot
+        self.action_encoding = _encoding(action_spec, self.num_actions, one_hot)
+        self.generator = generator
+        self.observation_key = observation_key
+        self.action_key = action_key
+        self.probs_key = probs_key
+        self.in_keys = [observation_key]
+        self.out_keys = [action_key, probs_key]
+
+    def _copy_streams(self, other: ActionProbsPolicy, trials: slice | None = None):
+        blocks = self.block_generators
+        other.block_generators = blocks if blocks is None or trials is None else blocks[trials]
+        return other
+
+    def _io_kwargs(self) -> dict:
+        return {
+            "one_hot": self.one_hot,
+            "action_spec": self.action_encoding,
+            "generator": self.generator,
+            "observation_key": self.observation_key,
+            "action_key": self.action_key,
+            "probs_key": self.probs_key,
+        }
+
+    @property
+    def param_dims(self) -> tuple[int, ...]:
+        """Leading dims ``*T`` of the policy's parameters (e.g. ``(T,)`` for one θ per trial)."""
+        return ()
+
+    def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        """``pi(·|s)``: obs ``[*T, ..., d]`` -> ``[*T, ..., A]`` in float64.
+
+        With per-trial parameters ``[T, ...]``, an environment batch laid out trial-major,
+        obs ``[T·R, d]``, is accepted too: row ``e`` belongs to trial ``e // R``.
+        """
+        lead = self.param_dims
+        if not lead or obs.shape[: len(lead)] == lead:
+            return self._action_probs(obs)
+        trials = math.prod(lead)
+        if obs.ndim < 2 or obs.shape[0] % trials:
+            raise ValueError(
+                f"the policy holds parameters for trials {tuple(lead)}; observations must have "
+                f"leading dims {tuple(lead)} or a first dim divisible by {trials}, "
+                f"got {tuple(obs.shape)}"
+            )
+        grid = obs.reshape(*lead, obs.shape[0] // trials, *obs.shape[1:])
+        probs = self._action_probs(grid)
+        return probs.reshape(*obs.shape[:-1], probs.shape[-1])
+
+    block_generators: list[torch.Generator] | None = None
+    """One random stream per equal, consecutive block of rows (e.g. per trial), or None."""
+
+    def sample(self, probs: torch.Tensor) -> torch.Tensor:
+        """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator.
+
+        With ``block_generators`` set, the rows (flattened leading dims, trial-major) are split
+        into equal blocks, each drawn from its own generator.
+        """
+        shape = probs.shape[:-1]
+        if self.block_generators is None:
+            device = "cpu" if self.generator is None else self.generator.device
+            uniform = torch.rand(
+                shape, generator=self.generator, dtype=torch.float64, device=device
+            )
+        else:
+            rows, blocks = shape.numel(), len(self.block_generators)
+            if rows % blocks:
+                raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
+            uniform = torch.cat(
+                [
+                    torch.rand(rows // blocks, generator=g, dtype=torch.float64, device=g.device)
+                    for g in self.block_generators
+                ]
+            ).reshape(shape)
+        uniform = uniform.to(probs.device)
+        cdf = probs.cumsum(-1)
+        return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
+
+    def with_action_spec(self, action_spec) -> ActionProbsPolicy:
+        """The same policy (same parameters and random streams) writing actions in the encoding
+        of ``action_spec`` (a TorchRL spec or an :class:`~torch_api.actions.ActionEncoding`)."""
+        encoding = _encoding(action_spec, self.num_actions, self.one_hot)
+        if encoding == self.action_encoding:
+            return self
+        other = copy.copy(self)  # shares θ, the basis and the generators
+        other.action_encoding = encoding
+        other.one_hot = encoding.one_hot
+        return other
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.observation_key)
+        if obs.ndim == tensordict.batch_dims:  # scalar observations (a state index)
+            obs = obs.unsqueeze(-1)
+        probs = self.action_probs(obs)
+        if exploration_type() in _GREEDY_EXPLORATION:
+            index = probs.argmax(-1)
+            probs = torch.nn.functional.one_hot(index, probs.shape[-1]).to(probs.dtype)
+        else:
+            index = self.sample(probs)
+        tensordict.set(self.action_key, self.action_encoding.encode(index))
+        tensordict.set(self.probs_key, probs)
+        return tensordict
+
+
+def _encoding(action_spec, num_actions: int, one_hot: bool) -> ActionEncoding:
+    """The encoding of ``action_spec`` (a spec or an encoding), else of the ``one_hot`` flag."""
+    if action_spec is None:  # one-hot actions as TorchRL's OneHot spec writes them by default
+        return ActionEncoding(num_actions, one_hot, torch.bool if one_hot else torch.int64)
+    if isinstance(action_spec, ActionEncoding):
+        encoding = action_spec
+    else:
+        batch = tuple(action_spec.shape[:-1])
+        encoding = ActionEncoding.from_spec(action_spec, batch)
+    if encoding.num_actions != num_actions:
+        raise ValueError(
+            f"action_spec has {encoding.num_actions} actions but the policy {num_actions}"
+        )
+    return encoding

@@ -1,0 +1,54 @@
+"""What one iteration of Algorithm 1 leaves behind: :class:`IterationRecord`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["IterationRecord"]
+
+
+@dataclass
+class IterationRecord:
+    """What happened in one iteration l (1-based) of Algorithm 1.
+
+    Attributes:
+        iteration: l.
+        chosen: index of the sampling-policy candidate used (0 = the evaluation policy itself;
+            always 0 in passive mode); a list over trials when run with ``num_trials``.
+        sampling_rule: ε (or β) of the sampling policy used (per trial with ``num_trials``).
+        j_mean: J' of every candidate ``[*T][K]`` (active mode), else None.
+        j_all: J of every repeat and candidate ``[*T][Z][K]`` (active mode), else None.
+        episodes_bought: rewarded episodes collected in this iteration (per trial).
+        rewarded_transitions: rewarded transitions bought so far (cumulative, per trial).
+        reward_free_transitions: reward-free transitions collected so far (cumulative, per
+            trial).
+        performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
+        seconds: wall time of the iteration (evaluation callback excluded).
+        theta: θ_l ``[*T][B]``.
+    """
+
+    iteration: int
+    chosen: int | list
+    sampling_rule: float | list
+    j_mean: list | None
+    j_all: list | None
+    episodes_bought: int
+    rewarded_transitions: int
+    reward_free_transitions: int
+    performance: dict | None
+    seconds: float
+    theta: list = field(repr=False)
+
+    def row(self) -> dict:
+        """The iteration's numbers as one flat dict for JSON/CSV (θ and per-repeat J left out)."""
+        return {
+            "iteration": self.iteration,
+            "episodes_bought": self.episodes_bought,
+            "rewarded_transitions": self.rewarded_transitions,
+            "reward_free_transitions": self.reward_free_transitions,
+            "chosen": self.chosen,
+            "sampling_rule": self.sampling_rule,
+            "j_mean": self.j_mean,
+            "seconds": self.seconds,
+            **(self.performance or {}),
+        }
