@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
@@ -48,3 +49,30 @@ def test_benchmark_runs_quick(command, expected, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert expected in done.stdout
     assert out.exists()
+
+
+def test_aggregating_identical_rows_changes_nothing():
+    """``benchmarks/_aggregate.py``: J and θ on merged identical rows equal those on all rows."""
+    sys.path.insert(0, str(BENCHMARKS))
+    from _aggregate import aggregate_identical_rows
+
+    from torch_api.solve import DEFAULT_LAMBDA as LAM
+    from torch_api.solve import j_criterion, weighted_ridge
+
+    gen = torch.Generator().manual_seed(3)
+    distinct = torch.randn(2, 5, 6, generator=gen, dtype=torch.float64)
+    pick = torch.randint(0, 5, (2, 300), generator=gen)
+    x = torch.gather(distinct, 1, pick.unsqueeze(-1).expand(2, 300, 6))
+    w = torch.rand(2, 300, generator=gen, dtype=torch.float64)
+    r = torch.randn(2, 300, generator=gen, dtype=torch.float64)
+    u = torch.eye(6, dtype=torch.float64)
+    agg = aggregate_identical_rows(x, w, r)
+    assert agg.x.shape[-2] <= 5
+    j_full = j_criterion(x, w, u, LAM)
+    j_agg = j_criterion(
+        agg.x, agg.w, u, LAM, num_samples=agg.num_samples, sq_weights=agg.sq_weights
+    )
+    torch.testing.assert_close(j_agg, j_full, rtol=1e-10, atol=0)
+    theta_full = weighted_ridge(x, w, r, LAM)
+    theta_agg = weighted_ridge(agg.x, agg.w, agg.r, LAM, num_samples=agg.num_samples)
+    torch.testing.assert_close(theta_agg, theta_full, rtol=1e-9, atol=1e-12)

@@ -6,7 +6,6 @@ import scipy.linalg
 import torch
 
 from torch_api.solve import (
-    aggregate_identical_rows,
     j_criterion,
     j_from_moments,
     weighted_moment,
@@ -70,26 +69,6 @@ def test_j_criterion_matches_algorithm_2_dense_form():
         for k in range(4):
             ref = _dense_j(x[zi, k], w[zi, k], u[zi, 0], LAM)
             assert abs(j[zi, k].item() - ref) <= 1e-8 * abs(ref)
-
-
-def test_aggregating_identical_rows_changes_nothing():
-    gen = torch.Generator().manual_seed(3)
-    distinct = torch.randn(2, 5, 6, generator=gen, dtype=torch.float64)
-    pick = torch.randint(0, 5, (2, 300), generator=gen)
-    x = torch.gather(distinct, 1, pick.unsqueeze(-1).expand(2, 300, 6))
-    w = torch.rand(2, 300, generator=gen, dtype=torch.float64)
-    r = torch.randn(2, 300, generator=gen, dtype=torch.float64)
-    u = torch.eye(6, dtype=torch.float64)
-    agg = aggregate_identical_rows(x, w, r)
-    assert agg.x.shape[-2] <= 5
-    j_full = j_criterion(x, w, u, LAM)
-    j_agg = j_criterion(
-        agg.x, agg.w, u, LAM, num_samples=agg.num_samples, sq_weights=agg.sq_weights
-    )
-    torch.testing.assert_close(j_agg, j_full, rtol=1e-10, atol=0)
-    theta_full = weighted_ridge(x, w, r, LAM)
-    theta_agg = weighted_ridge(agg.x, agg.w, agg.r, LAM, num_samples=agg.num_samples)
-    torch.testing.assert_close(theta_agg, theta_full, rtol=1e-9, atol=1e-12)
 
 
 def test_moments_and_j_from_moments_agree():

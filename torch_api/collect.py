@@ -21,7 +21,7 @@ from torch_api.episodes import (
     _episodes_from_rollout,
     pad_steps,
 )
-from torch_api.policies import ActionProbsPolicy
+from torch_api.policy_base import ActionProbsPolicy, param_dims_of
 
 __all__ = ["EnvPerBatch", "SpecCheckedPolicy", "collect_episodes", "collect_with_collector"]
 
@@ -121,7 +121,7 @@ def collect_episodes(
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
     if len(env.batch_size) > 1:
         raise ValueError(f"env must have a batch size [E] or [], got {tuple(env.batch_size)}")
-    trial_dims = tuple(getattr(policy, "param_dims", ()))
+    trial_dims = param_dims_of(policy)
     rows = math.prod(trial_dims) * num_episodes
     batched = len(env.batch_size) > 0
     if trial_dims and (not batched or env.batch_size[0] != rows):

@@ -35,6 +35,7 @@ from torch_api.actions import ActionEncoding
 from torch_api.buffer import validate_episodes
 from torch_api.episodes import _episodes_from_rollout
 from torch_api.lifetime import die_with_parent
+from torch_api.policy_base import param_dims_of
 from torch_api.streams import seed_env
 
 __all__ = ["collect_episodes_in_workers"]
@@ -135,7 +136,7 @@ def collect_episodes_in_workers(
     """
     if num_workers < 1:
         raise ValueError(f"num_workers must be >= 1, got {num_workers}")
-    trial_dims = tuple(getattr(policy, "param_dims", ()))
+    trial_dims = param_dims_of(policy)
     rows = math.prod(trial_dims) * num_episodes
     if action_spec is None:  # the workers' env encodes actions as one env of its kind does
         probe = make_env(1)

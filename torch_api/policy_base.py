@@ -19,7 +19,18 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from torch_api.actions import ActionEncoding
 
-__all__ = ["ActionProbsPolicy"]
+__all__ = ["ActionProbsPolicy", "param_dims_of"]
+
+
+def param_dims_of(policy) -> tuple[int, ...]:
+    """The leading parameter dims ``*T`` of a library policy (one θ per trial); ``()`` for any
+    other policy (a TorchRL actor holds one set of parameters).
+
+    Example:
+        >>> param_dims_of(object())
+        ()
+    """
+    return tuple(policy.param_dims) if isinstance(policy, ActionProbsPolicy) else ()
 
 
 _GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)

@@ -23,7 +23,7 @@ from torch_api.data import (
 )
 from torch_api.lstd import lstd_j_values
 from torch_api.multiprocess import collect_episodes_in_workers
-from torch_api.policies import ActionProbsPolicy
+from torch_api.policy_base import ActionProbsPolicy, param_dims_of
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA
 
@@ -240,7 +240,7 @@ class SamplingPolicySelector:
             isinstance(c, ActionProbsPolicy) for c in candidates
         ):
             return self._collect_each(candidates, iteration)
-        trial_dims = tuple(getattr(candidates[0], "param_dims", ()))
+        trial_dims = param_dims_of(candidates[0])
         trials = math.prod(trial_dims)
         z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
         generator = self.generator or candidates[0].generator
@@ -315,7 +315,7 @@ class SamplingPolicySelector:
                 f"{[type(c).__name__ for c in candidates]}"
             )
         for cand in candidates:
-            if tuple(getattr(cand, "param_dims", ())):
+            if param_dims_of(cand):
                 raise ValueError(
                     "candidates with per-trial parameters cannot be mixed with other policies"
                 )
@@ -395,7 +395,7 @@ class SamplingPolicySelector:
                     for trials in self._trial_chunks(episodes, earlier_episodes)
                 ]
             )
-            if tuple(getattr(evaluation_policy, "param_dims", ()))
+            if param_dims_of(evaluation_policy)
             else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None)
         )
         j_mean = j_all.mean(-2)
