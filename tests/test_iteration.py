@@ -269,3 +269,20 @@ def test_rewarded_draws_do_not_depend_on_reward_free_collection(num_trials):
     assert torch.equal(bought["active"]["action"], bought["passive"]["action"])
     assert torch.equal(bought["active"]["observation"], bought["passive"]["observation"])
     assert torch.equal(active.theta, passive.theta)
+
+
+def test_hooks_see_every_commit_and_every_iteration(tmp_path):
+    """``on_checkpoint`` after each commit (selection, episodes, record), ``on_iteration`` with
+    each record; the numbers are those of a run without hooks."""
+    commits, records = [], []
+    hooked = _api(
+        checkpoint_path=tmp_path / "run.db",
+        on_checkpoint=lambda api: commits.append(api.iteration),
+        on_iteration=records.append,
+    )
+    history = hooked.run()
+    plain = _api().run()
+    assert records == history
+    assert len(commits) == 3 * len(history)  # selection, rewarded episodes, record per l
+    for a, b in zip(history, plain, strict=True):
+        assert a.theta == b.theta and a.chosen == b.chosen

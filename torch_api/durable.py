@@ -101,7 +101,9 @@ class DurableState:
         return config
 
     def _on_commit(self) -> None:
-        """Called after every commit to the store (a hook for tests and testing aids)."""
+        """Called after every commit to the store: runs the ``on_checkpoint`` hook."""
+        if self.on_checkpoint is not None:
+            self.on_checkpoint(self)
 
     def _restore(self, stored: StoredRun, path: Path | None = None) -> None:
         """Rebuild the run's state from a verified store; nothing is changed if it fails.

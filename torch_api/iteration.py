@@ -171,6 +171,10 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             ``env.rollout`` (the default; faster on batched envs). The collector's env is then
             seeded by the user, not by ``seed``; ``env`` still names the env (its action
             encoding). Not with ``num_trials``.
+        on_checkpoint: optional hook ``(api) -> None`` called after every commit to the store
+            (progress, a testing aid that stops the process at a given commit).
+        on_iteration: optional hook ``(record) -> None`` called with each completed
+            iteration's :class:`IterationRecord` (logging, early stopping by raising).
 
     Example:
         >>> from torchrl.envs import GymEnv
@@ -217,6 +221,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
+        on_checkpoint: Callable[[ActivePolicyIteration], None] | None = None,
+        on_iteration: Callable[[IterationRecord], None] | None = None,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -247,6 +253,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         if collector is not None and (num_trials is not None or reward_free_workers):
             raise ValueError("collector works without num_trials and reward_free_workers")
         self.collector = collector
+        self.on_checkpoint = on_checkpoint
+        self.on_iteration = on_iteration
         if num_trials is not None and isinstance(env, EnvBase):
             raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
@@ -406,6 +414,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             seconds,
             self.rewarded_transitions,
         )
+        if self.on_iteration is not None:
+            self.on_iteration(record)
         if self.iteration == len(self.schedule):
             self._close_store()
         return record
