@@ -124,9 +124,6 @@ def dataclass_parser(
         if f.type in ("bool", bool):
             parser.add_argument(flag, action="store_true", help=text)
             continue
-        choices = f.metadata.get("choices")
-        if choices:
-            text += f" (one of: {', '.join(map(str, choices))})"
         parser.add_argument(
             flag, type=type(f.default), default=f.default, help=text, metavar=_metavar(f)
         )
@@ -138,8 +135,9 @@ def dataclass_parser(
 
 
 def _metavar(f: dataclasses.Field) -> str:
-    kind = type(f.default)
-    return {int: "INT", float: "X"}.get(kind, f.name.upper())
+    if f.metadata.get("choices"):
+        return "{" + ",".join(map(str, f.metadata["choices"])) + "}"
+    return {int: "INT", float: "X"}.get(type(f.default), f.name.upper())
 
 
 def range_error(cls, args) -> str | None:
@@ -291,3 +289,88 @@ def parse(
 def first_line(doc: str | None) -> str:
     """The first line of a docstring (a script's one-line description)."""
     return (doc or "").strip().split("\n")[0]
+
+
+# -- durable runs: --resume / --overwrite, signals ------------------------------------------
+
+
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM arrived (raised in the main thread by :func:`raise_on_signals`)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def raise_on_signals() -> None:
+    """Turn SIGINT and SIGTERM into :class:`Interrupted` in the main thread.
+
+    The run's store holds both back while it commits, so the exception arrives between
+    commits: the write in flight always completes.
+    """
+    import signal
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)
+
+
+def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:
+    """Why the script must not start: runs are stored at ``paths`` and neither ``--resume`` nor
+    ``--overwrite`` was given (or both were); None if it may."""
+    if resume and overwrite:
+        return "--resume and --overwrite exclude each other"
+    held = [p for p in paths if p.is_file() and p.stat().st_size > 0]
+    if held and not (resume or overwrite):
+        names = ", ".join(str(p) for p in held[:3]) + (" ..." if len(held) > 3 else "")
+        return (
+            f"runs are stored already ({names}); add --resume to continue them or --overwrite "
+            "to discard them"
+        )
+    return None
+
+
+def stored_summary(paths: Sequence[Path]) -> tuple[int, int]:
+    """(the iteration in flight, rewarded episodes stored over all trials) of the runs stored
+    at ``paths`` (read only; missing or unreadable files count as empty)."""
+    from torch_api.store import RunStore, StoreError
+
+    in_flight, episodes, last = [], 0, 0
+    for path in paths:
+        if not Path(path).is_file():
+            continue
+        try:
+            stored = RunStore.read(path)
+        except StoreError:
+            continue
+        trials = stored.config.get("num_trials") or 1
+        episodes += stored.num_episodes * trials
+        done, total = len(stored.records), len(stored.config.get("schedule", []))
+        last = max(last, done)
+        if done < total:
+            in_flight.append(done + 1)
+    return (min(in_flight) if in_flight else last), episodes
+
+
+def exit_interrupted(signum: int, paths: Sequence[Path], where: str | os.PathLike) -> None:
+    """Print the one line of an interrupted run and exit with 128 + the signal (130, 143)."""
+    import sys
+
+    iteration, episodes = stored_summary(paths)
+    print(
+        f"interrupted at iteration {iteration}; {episodes} rewarded episodes stored in {where}; "
+        "continue with --resume",
+        file=sys.stderr,
+        flush=True,
+    )
+    raise SystemExit(128 + signum)
+
+
+def exit_store_error(error: BaseException) -> None:
+    """A store error (a run in use, unwritable, corrupted, of other settings) as one line."""
+    import sys
+
+    print(f"error: {error}", file=sys.stderr, flush=True)
+    raise SystemExit(1)

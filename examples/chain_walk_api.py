@@ -39,6 +39,13 @@ trial) and ``fig8_performance.png`` (mean ± standard error over trials).
 
     python examples/chain_walk_api.py --trials 1000
 
+Durable runs: every run (chunk) is stored as it goes in ``<out-dir>/checkpoints/<schedule>_<AL
+or PL>[_chunk<c>of<C>].db`` (an SQLite database, ``torch_api/store.py``): the rewarded
+episodes of an iteration are committed before the next are measured. A folder holding runs is
+refused unless ``--resume`` (continue them, buying only what is missing; the results equal an
+uninterrupted run's) or ``--overwrite`` (discard them) is given. SIGINT/SIGTERM finish the
+commit in flight and end with one line (exit 130/143).
+
 Device: ``--device cuda`` runs the whole experiment on the GPU: the batched chain walks, the
 rollouts, psi_hat, J and the solves. The walks' random numbers are drawn on the CPU and moved,
 so a seed gives the same episodes on either device.
@@ -48,7 +55,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import BACKENDS, LOGGERS, field, first_line, log_means, make_logger, parse
+from _cli import (
+    BACKENDS,
+    LOGGERS,
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    log_means,
+    make_logger,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
 
 
 @dataclass
@@ -60,7 +80,11 @@ class Args:
     seed: int = 0
     """master seed; AL and PL of a schedule share their seeds"""
     out_dir: str = "results/chain_walk_api"
-    """where the JSON, the CSV and the figure go"""
+    """where the JSON, the CSV, the figure and the stored runs go"""
+    resume: bool = False
+    """continue the runs stored in out_dir (a missing run starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
     repeats: int = field(5, low=1)
     """Z, J-values averaged into J'"""
     lam: float = field(1e-3, above=0)
@@ -99,6 +123,8 @@ class Args:
 
 
 def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
     if args.chunks > args.trials:
         return f"--chunks must lie in 1..{args.trials} (--trials), got {args.chunks}"
     return None
@@ -110,7 +136,6 @@ def parse_args(argv=None) -> Args:
         argv,
         description=first_line(__doc__),
         check=check,
-        unavailable={"resume": "a run keeps no checkpoints yet; rerun it"},
     )
 
 
@@ -147,6 +172,7 @@ from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import run_chunks, split_trials, trial_seeds  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 METHODS = {"AL": "active", "PL": "passive"}
@@ -214,7 +240,15 @@ class Chunk:
     run_seed: int
     trials: list[int]
     """indices t of the run's trials in this chunk"""
+    store: Path
+    """where the chunk's run is stored"""
     progress: bool = True
+
+
+def store_name(schedule: str, method: str, chunk: int, chunks: int) -> str:
+    """``<schedule>_<method>.db``, or ``..._chunk<c>of<C>.db`` (c = 1 … C) if C > 1."""
+    suffix = "" if chunks == 1 else f"_chunk{chunk + 1}of{chunks}"
+    return f"{schedule}_{method}{suffix}.db"
 
 
 def run_chunk(chunk: Chunk) -> dict:
@@ -240,8 +274,15 @@ def run_chunk(chunk: Chunk) -> dict:
         trial_seeds=trial_seeds(run_seed, chunk.trials),  # trial t's seed: (run seed, t) only
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
+        checkpoint_path=chunk.store,
+        resume=args.resume,
+        overwrite=args.overwrite,
     )
-    first = api.policy.with_rule(epsilon=api.policy.epsilon)  # pi_1, its own streams below
+    if api.resumed:
+        print(f"resumed {chunk.store} at iteration {api.iteration}/{len(chunk.schedule)}")
+    elif args.resume:
+        print(f"nothing stored in {chunk.store}: starting it fresh")
+    first = api.initial_policy()  # pi_1, with streams of its own below
     first.block_generators = [
         torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
     ]
@@ -428,8 +469,26 @@ def main(argv=None) -> dict:
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    started = time.perf_counter()
     jobs = [(name, method) for name in names for method in METHODS]
+    stores = [
+        out / "checkpoints" / store_name(name, method, c, args.chunks)
+        for name, method in jobs
+        for c in range(args.chunks)
+    ]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out, names, jobs)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path, names: list[str], jobs: list[tuple[str, str]]) -> dict:
+    """Every run (chunks where asked), then the table, the files and the figure."""
+    started = time.perf_counter()
     chunks = [
         Chunk(
             args=args,
@@ -437,10 +496,11 @@ def main(argv=None) -> dict:
             mode=METHODS[method],
             run_seed=1000 * args.seed + 100 * list(SCHEDULES).index(name),  # AL, PL: paired
             trials=list(trials),
+            store=out / "checkpoints" / store_name(name, method, c, args.chunks),
             progress=args.backend == "local",
         )
         for name, method in jobs
-        for trials in split_trials(args.trials, args.chunks)
+        for c, trials in enumerate(split_trials(args.trials, args.chunks))
     ]
     print(f"{len(chunks)} chunks of about {args.trials // args.chunks} trials ({args.backend})")
     parts = run_chunks(

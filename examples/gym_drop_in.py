@@ -35,13 +35,31 @@ CartPoles. The policies' per-trial streams travel with the trials, but each work
 are seeded on their own, so the numbers are an equally valid sample, not those of one process.
 
     python examples/gym_drop_in.py --reward-free-workers 2
+
+Durable runs: AL and PL are stored as they go in ``<out-dir>/checkpoints/{active,passive}.db``
+(``torch_api/store.py``): the rewarded episodes of an iteration are committed before the next
+are measured. A folder holding runs is refused unless ``--resume`` (continue them, buying only
+what is missing) or ``--overwrite`` (discard them) is given; SIGINT/SIGTERM finish the commit in
+flight and end with one line (exit 130/143).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import LOGGERS, field, first_line, log_means, make_logger, parse
+from _cli import (
+    LOGGERS,
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    log_means,
+    make_logger,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
 
 
 @dataclass
@@ -53,7 +71,11 @@ class Args:
     seed: int = 0
     """run seed (shared by AL and PL: a paired design)"""
     out_dir: str = "results/gym_drop_in"
-    """where the JSON, the CSV and the figure go"""
+    """where the JSON, the CSV, the figure and the stored runs go"""
+    resume: bool = False
+    """continue the runs stored in out_dir (a missing run starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
     schedule: str = "10,10,6,6,6,2,2"
     """rewarded episodes per iteration, comma-separated (its length is L)"""
     iterations: int = field(0, low=0)
@@ -91,6 +113,8 @@ def schedule_of(args: Args) -> tuple[int, ...]:
 
 
 def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
     try:
         schedule = tuple(int(m) for m in args.schedule.split(","))
     except ValueError:
@@ -110,7 +134,6 @@ def parse_args(argv=None) -> Args:
         check=check,
         unavailable={
             "device": "CartPole steps in Python on the CPU (Gymnasium); the algebra is small",
-            "resume": "a run keeps no checkpoints yet; rerun it",
             "backend": "all trials run as one batch here (--reward-free-workers spreads the "
             "reward-free collection over processes)",
         },
@@ -143,6 +166,7 @@ from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 ENV_ID = "CartPole-v1"
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
@@ -230,8 +254,13 @@ def make_evaluator(args: Args):
     return evaluate
 
 
+def store_of(args: Args, mode: str) -> Path:
+    """Where the run of one mode is stored."""
+    return Path(args.out_dir) / "checkpoints" / f"{mode}.db"
+
+
 def run_method(args: Args, mode: str) -> tuple[dict, dict]:
-    """One batched run of Algorithm 1 (all trials)."""
+    """One batched run of Algorithm 1 (all trials), stored as it goes."""
     evaluate = make_evaluator(args)
     api = ActivePolicyIteration(
         env=make_env,
@@ -249,8 +278,15 @@ def run_method(args: Args, mode: str) -> tuple[dict, dict]:
         num_trials=args.trials,
         seed=args.seed,
         keep_reward_free=False,
+        checkpoint_path=store_of(args, mode),
+        resume=args.resume,
+        overwrite=args.overwrite,
     )
-    initial = evaluate(api.policy, args.seed + 1)
+    if api.resumed:
+        print(f"resumed {store_of(args, mode)} at iteration {api.iteration}/{len(api.schedule)}")
+    elif args.resume:
+        print(f"nothing stored in {store_of(args, mode)}: starting it fresh")
+    initial = evaluate(api.initial_policy(), args.seed + 1)
     started = time.perf_counter()
     history = api.run(progress=True)
     seconds = time.perf_counter() - started
@@ -337,6 +373,20 @@ def main(argv=None) -> dict:
         torch.set_num_threads(args.threads)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    stores = [store_of(args, mode) for mode in METHODS.values()]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path) -> dict:
+    """Both runs, then the table, the files and the figure."""
     started = time.perf_counter()
     runs, checks = {}, {}
     for method, mode in tqdm(METHODS.items(), desc="method"):

@@ -48,17 +48,21 @@ seeded from the chunk: an equally valid sample, but not the same numbers.)
 
     python examples/train_batting.py --trials 500 --schedule both --backend ray --chunks 16
 
-Rewarded episodes are expensive, so every run is checkpointed after each batch of rewarded
-episodes and after each iteration (``<out-dir>/checkpoints/<schedule>_<mode>.pt``, with
-``_chunk<c>of<C>`` before ``.pt`` when chunked). After an interruption, the same command with
-``--resume`` continues every run from its checkpoint without buying its rewarded episodes again;
+Rewarded episodes are expensive, so every run is stored as it goes
+(``<out-dir>/checkpoints/<schedule>_<mode>.db``, with ``_chunk<c>of<C>`` before ``.db`` when
+chunked; an SQLite database, see ``torch_api/store.py``): each batch of rewarded episodes is
+committed before the next is measured, and every iteration's result after it. A folder that
+holds runs already is refused unless ``--resume`` (continue them) or ``--overwrite`` (discard
+them) is given. SIGINT/SIGTERM (Ctrl-C) finish the commit in flight and end with one line naming
+what is stored (exit 130/143). After an interruption or a kill, the same command with
+``--resume`` continues every run from its store without buying its rewarded episodes again;
 completed runs are not recomputed. Physics is MuJoCo on the CPU; ``--device cuda`` moves the
 algebra (psi_hat, J, the solves) to the GPU.
 
 Testing aid: ``--stop-after-checkpoints K`` ends the process abruptly (``os._exit(3)``, no
-cleanup) right after the K-th checkpoint of this invocation is written, to simulate an
-interruption (from a fresh start, odd K stops just after rewarded episodes were bought, even K
-after an iteration).
+cleanup) right after the K-th commit of this invocation, to simulate an interruption (a run
+commits its selection, then its rewarded episodes, then the iteration's result: from a fresh
+start, K = 2 stops just after the first rewarded episodes were bought).
 
 Ties: θ_0 = 1 gives both actions the same Q̂_0, and so does θ = 0 (a run that has seen no
 reward yet). By default (``--tie-break uniform``) tied actions share the greedy mass equally, so
@@ -72,7 +76,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import BACKENDS, LOGGERS, field, first_line, log_means, make_logger, parse
+from _cli import (
+    BACKENDS,
+    LOGGERS,
+    Interrupted,
+    exit_interrupted,
+    exit_store_error,
+    field,
+    first_line,
+    log_means,
+    make_logger,
+    parse,
+    raise_on_signals,
+    stored_runs_error,
+)
 
 
 @dataclass
@@ -101,7 +118,10 @@ class Args:
     out_dir: str = "results/train_batting"
     """where the JSON, CSV, figure and checkpoints go"""
     resume: bool = False
-    """continue every run from its checkpoint in out_dir; completed runs are not recomputed"""
+    """continue every run stored in out_dir; completed runs are not recomputed (a missing run
+    starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
     stop_after_checkpoints: int = field(0, low=0)
     """testing aid: if > 0, exit abruptly (os._exit(3)) after this many checkpoints"""
     backend: str = field("local", choices=BACKENDS)
@@ -145,6 +165,8 @@ def parse_widths(text: str) -> list[float] | None:
 
 
 def check(args: Args) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
     try:
         parse_widths(args.basis_widths)
     except ValueError as error:
@@ -206,6 +228,7 @@ from torch_api.dispatch import (  # noqa: E402
 )
 from torch_api.iteration import ActivePolicyIteration, derive_seed  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 MODES = {"active": "AL", "passive": "PL"}
@@ -284,7 +307,7 @@ class TestPerformance:
 
 
 class CheckpointCounter:
-    """Counts checkpoints written in this process; with a limit, ends it abruptly (testing aid)."""
+    """Counts commits made in this process; with a limit, ends it abruptly (testing aid)."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -298,12 +321,11 @@ class CheckpointCounter:
 
 
 class InterruptibleRun(ActivePolicyIteration):
-    """ActivePolicyIteration that reports every checkpoint it writes to a counter."""
+    """ActivePolicyIteration that reports every commit to its store to a counter."""
 
     counter: CheckpointCounter | None = None
 
-    def save(self, path) -> None:
-        super().save(path)
+    def _on_commit(self) -> None:
         if self.counter is not None:
             self.counter.saved()
 
@@ -325,9 +347,9 @@ class Chunk:
 
 
 def checkpoint_name(schedule: str, mode: str, chunk: int, chunks: int) -> str:
-    """``<schedule>_<mode>.pt``, or ``<schedule>_<mode>_chunk<c>of<C>.pt`` (c = 1 … C) if C > 1."""
+    """``<schedule>_<mode>.db``, or ``<schedule>_<mode>_chunk<c>of<C>.db`` (c = 1 … C) if C > 1."""
     suffix = "" if chunks == 1 else f"_chunk{chunk + 1}of{chunks}"
-    return f"{schedule}_{mode}{suffix}.pt"
+    return f"{schedule}_{mode}{suffix}.db"
 
 
 def chunk_seed(seed: int, first_trial: int) -> int:
@@ -377,6 +399,8 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         trial_seeds=trial_seeds(args.seed, chunk.trials),
         keep_reward_free=False,  # not needed later; keeps checkpoints small
         checkpoint_path=chunk.checkpoint,
+        resume=args.resume,
+        overwrite=args.overwrite,
         device=args.device,
     )
     api.counter = chunk.counter
@@ -391,10 +415,11 @@ def run_chunk(chunk: Chunk) -> dict:
     audit_seed = int(np.random.SeedSequence([chunk.args.seed, name_key]).generate_state(1)[0])
     audit = PhysicsAudit(chunk.args.physics_audit, seed=audit_seed)
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # also in worker processes
-    api = make_run(chunk, audit)
-    if chunk.args.resume and chunk.checkpoint.exists():
-        api.load(chunk.checkpoint)
+    api = make_run(chunk, audit)  # opens (and locks) the run's store, checked writable
+    if api.resumed:
         print(f"resumed {chunk.checkpoint} at iteration {api.iteration}/{len(chunk.schedule)}")
+    elif chunk.args.resume:
+        print(f"nothing stored in {chunk.checkpoint}: starting it fresh")
     api.run(progress=chunk.progress)
     return summarise(api.history, chunk.mode) | {"physics": audit}
 
@@ -612,10 +637,28 @@ def main(argv=None) -> dict:
     ckpt_dir = out / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    counter = CheckpointCounter(args.stop_after_checkpoints)
-    started = time.perf_counter()
     jobs = [(name, mode) for name in names for mode in MODES]
     pieces = split_trials(args.trials, args.chunks)
+    stores = [
+        ckpt_dir / checkpoint_name(name, mode, c, args.chunks)
+        for name, mode in jobs
+        for c in range(len(pieces))
+    ]
+    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    raise_on_signals()
+    try:
+        return run_all(args, out, ckpt_dir, names, jobs, pieces)
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, stores, ckpt_dir)
+    except StoreError as error:
+        exit_store_error(error)
+
+
+def run_all(args: Args, out: Path, ckpt_dir: Path, names, jobs, pieces) -> dict:
+    """Every run of the experiment (chunks where asked), then the tables, files and figure."""
+    counter = CheckpointCounter(args.stop_after_checkpoints)
+    started = time.perf_counter()
     # MuJoCo threads per chunk: every core in-process, the cores shared out among processes,
     # one per Ray task (Ray gives each task one CPU)
     physics_threads = {"local": None, "ray": 1}.get(

@@ -8,8 +8,11 @@ Tests write only into temporary folders: the session fails if the checkout holds
 ones included) afterwards that it did not hold before.
 """
 
+import atexit
 import os
+import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -21,6 +24,15 @@ _TOOL_LITTER = (".pytest_cache", "__pycache__", ".ruff_cache", ".venv", ".venv-c
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 torch.set_num_threads(1)
+
+try:  # Hypothesis keeps caches (e.g. .hypothesis/constants/) in the working directory
+    from hypothesis.configuration import set_hypothesis_home_dir
+except ImportError:  # the test extra is not installed; test_properties.py will say so
+    pass
+else:
+    _HYPOTHESIS_HOME = tempfile.mkdtemp(prefix="hypothesis-")
+    set_hypothesis_home_dir(_HYPOTHESIS_HOME)
+    atexit.register(shutil.rmtree, _HYPOTHESIS_HOME, ignore_errors=True)
 
 
 def _checkout_files() -> set[str] | None:

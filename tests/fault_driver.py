@@ -1,85 +1,150 @@
-"""A run of ActivePolicyIteration that kills itself at the K-th event (for tests/test_faults.py).
+"""A durable run that SIGKILLs itself at the K-th event (for tests/test_faults.py).
 
-Events: every environment step (so kills land inside reward-free and rewarded collection),
-the middle of every checkpoint write (half the bytes written to the temporary file), and every
-boundary between iterations. The process dies with ``os._exit`` — no cleanup, no flush — as a
-SIGKILL would leave it.
+The rewarded environment counts its reward measurements: every rewarded step appends the rows
+it measured to ``MEASURED`` (an unbuffered append, in the kernel before the step returns, so a
+kill never hides a measurement). Events, at which the process sends itself SIGKILL:
 
-    python tests/fault_driver.py CHECKPOINT RESULT.json KILL_AT   (KILL_AT < 0: never)
+* every environment step (inside reward-free collection and inside a rewarded slice);
+* inside a store transaction, after each row is written and before the commit (mid-write);
+* after every commit (e.g. right after a slice is stored, its rewards not yet fitted);
+* every boundary between iterations.
+
+    python tests/fault_driver.py RUN.db MEASURED RESULT.json KILL_AT SLICE
+
+KILL_AT: the K-th event (a number; -1: never) or the K-th event of one kind (``KIND@K``, e.g.
+``after_put_episodes@2``; kinds as written to ``MEASURED.kills`` with ``_`` for spaces).
+
+Exit 0 with RESULT written when the run completes. ``python tests/fault_driver.py serve`` is a
+fork server: it imports everything once, then for each line ``RUN MEASURED RESULT KILL_AT
+SLICE`` on stdin forks a child process running that run, prints ``pid P`` and, when the child
+has ended, ``exit CODE`` (-9: killed by SIGKILL). The server runs no tensor code itself, so its
+children start clean in about a second instead of importing torch for several.
 """
 
 import json
+import logging
 import os
+import signal
 import sys
 
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api import iteration as iteration_module
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.store import RunStore
 
-KILLED = 137
+SCHEDULE = (3, 2, 2, 1)
+TRIALS = 2
+STEPS = 10
 
 
-def main(checkpoint: str, result: str, kill_at: int) -> None:
-    events = {"count": 0}
+class CountingChain(ChainWalkEnv):
+    """The rewarded chain walk: every step is a measurement, appended to a file."""
 
-    def event() -> None:
-        events["count"] += 1
-        if events["count"] == kill_at:
-            os._exit(KILLED)
+    measured_fd: int | None = None
 
-    step = ChainWalkEnv._step
+    def _step(self, td):
+        out = super()._step(td)
+        os.write(self.measured_fd, f"{self.batch_size[0]}\n".encode())
+        return out
 
-    def dying_step(self, td):
-        event()
-        return step(self, td)
 
-    ChainWalkEnv._step = dying_step
-    save = torch.save
-
-    def dying_save(obj, path, *args, **kwargs):
-        save(obj, path, *args, **kwargs)
-        with open(path, "rb+") as handle:  # leave a half-written temporary file behind
-            size = os.path.getsize(path)
-            if events["count"] + 1 == kill_at:
-                handle.truncate(size // 2)
-        event()
-
-    iteration_module.torch.save = dying_save
+def make_api(path, slice_mode, resume):
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e),
+    return ActivePolicyIteration(
+        env=lambda e: CountingChain(batch_size=e),
+        reward_free_env=lambda e: ChainWalkEnv(batch_size=e),
         basis=basis,
-        schedule=(3, 2, 2, 1),
-        num_steps=10,
+        schedule=SCHEDULE,
+        num_steps=STEPS,
         gamma=GAMMA,
         num_repeats=2,
         psi_mode="grouped",
-        num_trials=2,
+        num_trials=TRIALS,
         seed=3,
-        checkpoint_path=checkpoint,
+        checkpoint_path=path,
+        resume=resume,
+        rewarded_slice=slice_mode,
     )
-    if os.path.exists(checkpoint):
-        api.load(checkpoint)
+
+
+def main(path: str, measured: str, result: str, kill_at: str, slice_mode: str) -> None:
+    events = {"count": 0}
+    kinds: dict[str, int] = {}
+
+    def event(kind: str) -> None:
+        events["count"] += 1
+        kinds[kind] = kinds.get(kind, 0) + 1
+        if str(events["count"]) == kill_at or f"{kind.replace(' ', '_')}@{kinds[kind]}" == kill_at:
+            with open(f"{measured}.kills", "a") as handle:  # what the kill interrupted
+                handle.write(kind + "\n")
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    CountingChain.measured_fd = os.open(measured, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    step = ChainWalkEnv._step
+
+    def dying_step(self, td):
+        event("rewarded step" if isinstance(self, CountingChain) else "reward-free step")
+        return step(self, td)
+
+    ChainWalkEnv._step = dying_step
+    put = RunStore._put
+
+    def dying_put(db, *args, **kwargs):
+        put(db, *args, **kwargs)
+        event("inside a transaction")  # a row written, the transaction not yet committed
+
+    RunStore._put = staticmethod(dying_put)
+    for name in ("put_selection", "put_episodes", "put_record"):
+        write = getattr(RunStore, name)
+
+        def committed(self, *args, _write=write, _name=name, **kwargs):
+            _write(self, *args, **kwargs)
+            event(f"after {_name}")  # after put_episodes: rewards bought, not yet fitted
+
+        setattr(RunStore, name, committed)
+    api = make_api(path, slice_mode, resume=True)
     while api.iteration < len(api.schedule):
-        event()
+        event("between iterations")
         api.step()
     episodes = api.rewarded.episodes()
     out = {
-        "events": events["count"],
         "theta": api.theta.tolist(),
         "chosen": [r.chosen for r in api.history],
         "j_mean": [r.j_mean for r in api.history],
         "episodes_per_trial": len(api.rewarded),
-        "iteration_tags": episodes["iteration"][:, :, 0].tolist(),
-        "observations": episodes["observation"].flatten().tolist(),
-        "rewards": episodes["next", "reward"].flatten().tolist(),
+        "episodes": {str(k): episodes[k].tolist() for k in episodes.keys(True, True)},
     }
     with open(result, "w") as handle:
         json.dump(out, handle)
+    print(f"{events['count']} events", file=sys.stderr)
+
+
+def serve() -> None:
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    for line in sys.stdin:
+        path, measured, result, kill_at, slice_mode = line.split()
+        pid = os.fork()
+        if pid == 0:  # the child: one run, then out without the parent's cleanup
+            code = 0
+            try:
+                main(path, measured, result, kill_at, slice_mode)
+            except BaseException:
+                import traceback
+
+                traceback.print_exc()
+                code = 1
+            finally:
+                sys.stderr.flush()
+                os._exit(code)
+        print(f"pid {pid}", flush=True)
+        _, status = os.waitpid(pid, 0)
+        print(f"exit {os.waitstatus_to_exitcode(status)}", flush=True)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], int(sys.argv[3]))
+    if sys.argv[1:] == ["serve"]:
+        serve()
+    else:
+        main(*sys.argv[1:6])

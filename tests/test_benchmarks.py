@@ -28,6 +28,7 @@ BENCHMARKS = ROOT / "benchmarks"
             "| slow chain walk (500 µs per row-step) | 4 |",
         ),
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
+        (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),
     ],
 )

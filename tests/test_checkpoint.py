@@ -1,6 +1,15 @@
-"""ActivePolicyIteration checkpoints: resume equals an uninterrupted run; bad files are refused."""
+"""Durable runs: resume equals the uninterrupted run, nothing is bought twice or overwritten
+silently, and bad files, bad places and other settings are refused with the path named."""
 
+import math
+import os
 import pickle
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -8,141 +17,549 @@ import torch
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.store import (
+    CorruptRunError,
+    RunExistsError,
+    RunInUseError,
+    RunStore,
+    StoreWriteError,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def _api(path=None, trials=3, mode="active"):
-    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, **kw):
+    settings = {
+        "centers": torch.tensor(CENTERS)[:, None],
+        "tau": TAU,
+        "schedule": (3, 2, 2),
+        "gamma": GAMMA,
+        "num_steps": 10,
+    }
+    settings |= {k: kw.pop(k) for k in list(kw) if k in settings}
+    basis = GaussianActionBasis(centers=settings["centers"], tau=settings["tau"], num_actions=2)
     return ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e),
+        env=lambda e: env(batch_size=e),
         basis=basis,
-        schedule=(3, 2, 2),
-        num_steps=10,
-        gamma=GAMMA,
+        schedule=settings["schedule"],
+        num_steps=settings["num_steps"],
+        gamma=settings["gamma"],
         mode=mode,
         num_repeats=2,
         psi_mode="grouped",
         num_trials=trials,
         seed=7,
         checkpoint_path=path,
+        **kw,
     )
 
 
-def _same_history(a, b):
+def _same_run(a, b):
+    """Same θ, choices, J' and the very same bought episodes, tensor by tensor."""
     assert torch.equal(a.theta, b.theta)
-    for ra, rb in zip(a.history, b.history, strict=True):
-        assert (ra.chosen, ra.j_mean, ra.rewarded_transitions) == (
-            rb.chosen,
-            rb.j_mean,
-            rb.rewarded_transitions,
-        )
+    assert [(r.chosen, r.j_mean, r.rewarded_transitions) for r in a.history] == [
+        (r.chosen, r.j_mean, r.rewarded_transitions) for r in b.history
+    ]
+    ea, eb = a.rewarded.episodes(), b.rewarded.episodes()
+    assert set(ea.keys(True, True)) == set(eb.keys(True, True))
+    for key in ea.keys(True, True):
+        assert torch.equal(ea[key], eb[key]), key
 
 
-@pytest.mark.parametrize("interrupt", ["after_buy", "after_iteration"])
-def test_resume_reproduces_the_uninterrupted_run(tmp_path, interrupt):
-    full = _api()
-    full.run()
-    path = tmp_path / "run.pt"
-    first = _api(path)
+@pytest.fixture(scope="module")
+def full():
+    api = _api()
+    api.run()
+    return api
+
+
+class _CountingChain(ChainWalkEnv):
+    """Counts the rewarded steps measured (the rewarded env has T·M_l rows, M_l <= 3)."""
+
+    measured = 0
+
+    def _step(self, td):
+        if self.batch_size[0] <= 9:
+            type(self).measured += self.batch_size[0]
+        return super()._step(td)
+
+
+def test_resume_after_rewards_bought_but_not_fitted_buys_nothing_again(tmp_path, full):
+    path = tmp_path / "run.db"
+    first = _api(path, env=_CountingChain)
     first.step()
-    if interrupt == "after_buy":
-        first._buy()  # rewards of iteration 2 bought and saved, θ_2 not yet fitted
-    resumed = _api(path)
-    resumed.load(path)
-    assert resumed.iteration == 1
-    bought_before = len(resumed.rewarded)
+    first._buy()  # rewards of iteration 2 bought and committed, θ_2 not yet fitted
+    first.close()
+    bought = _CountingChain.measured
+    assert bought == 3 * (3 + 2) * 10
+    resumed = _api(path, env=_CountingChain, resume=True)
+    assert resumed.resumed and resumed.iteration == 1 and len(resumed.rewarded) == 3 + 2
     resumed.run()
-    _same_history(full, resumed)
-    assert resumed.rewarded_transitions == (3 + 2 + 2) * 10  # nothing bought twice
-    if interrupt == "after_buy":
-        assert bought_before == 3 + 2
+    assert _CountingChain.measured - bought == 3 * 2 * 10  # only iteration 3's rewards
+    _same_run(full, resumed)
 
 
-def test_checkpoint_of_other_settings_is_refused(tmp_path):
-    path = tmp_path / "run.pt"
-    _api(path).step()
-    with pytest.raises(ValueError, match=r"other settings: \['num_trials', 'trial_seeds'\]"):
-        _api(trials=2).load(path)
-    with pytest.raises(ValueError, match=r"other settings: \['mode'\]"):
-        _api(mode="passive").load(path)
+def test_resume_after_an_iteration_reproduces_the_uninterrupted_run(tmp_path, full):
+    path = tmp_path / "run.db"
+    with _api(path) as first:
+        first.step()
+    resumed = _api(path, resume=True)
+    resumed.run()
+    _same_run(full, resumed)
+    assert resumed.store.closed  # a completed run releases its store
 
 
-def test_truncated_checkpoint_is_refused_and_leaves_state_alone(tmp_path):
-    path = tmp_path / "run.pt"
-    _api(path).step()
+def test_one_episode_at_a_time_resumes_mid_iteration(tmp_path):
+    reference = _api(rewarded_slice="episode")
+    reference.run()
+    path = tmp_path / "run.db"
+    first = _api(path, rewarded_slice="episode", env=_CountingChain)
+    first.step()
+    first._select(2, 2)
+    first._buy_slice(2, [0], reseed=True)  # episode 0 of iteration 2 bought, 1 not yet
+    first.close()
+    before = _CountingChain.measured
+    resumed = _api(path, rewarded_slice="episode", env=_CountingChain, resume=True)
+    assert sorted(resumed._partial) == [0]
+    resumed.run()
+    assert _CountingChain.measured - before == 3 * (1 + 2) * 10  # episode 1, then iteration 3
+    _same_run(reference, resumed)
+
+
+def test_an_existing_run_is_never_replaced_silently(tmp_path, full):
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    with pytest.raises(RunExistsError, match=r"run.db holds a run .*resume=True .*overwrite"):
+        _api(path)
+    assert len(RunStore.read(path).episodes[1]) == 3  # untouched
+    fresh = _api(path, overwrite=True)
+    assert fresh.iteration == 0 and RunStore.read(path).episodes == {}
+    fresh.run()
+    _same_run(full, fresh)
+    missing = _api(tmp_path / "new.db", resume=True)
+    assert not missing.resumed  # a resume of a missing run starts fresh
+    missing.close()
+
+
+@pytest.mark.parametrize(
+    ("change", "name"),
+    [
+        ({"trials": 2}, "num_trials"),
+        ({"mode": "passive"}, "mode"),
+        ({"centers": torch.tensor([[1.0], [4.0], [5.0], [7.0], [9.0]])}, "basis"),
+        ({"tau": 2.0}, "basis"),
+        ({"epsilon_schedule": lambda l: 0.1 / l}, "epsilons"),
+        ({"candidate_offsets": (0.0, 0.5)}, "candidate_offsets"),
+        ({"env": type("Other", (ChainWalkEnv,), {})}, "env"),
+        ({"num_steps": 8}, "num_steps"),
+        ({"gamma": 0.8}, "gamma"),
+        ({"schedule": (3, 2, 1)}, "schedule"),
+        ({"rewarded_slice": "episode"}, "rewarded_slice"),
+    ],
+)
+def test_a_run_of_other_settings_is_refused(tmp_path, change, name):
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    with pytest.raises(CorruptRunError, match=rf"run.db was made with other settings: .*'{name}'"):
+        _api(path, resume=True, **change)
+
+
+def test_env_parameters_are_part_of_the_settings(tmp_path):
+    class Slippery(ChainWalkEnv):
+        def __init__(self, **kw):
+            super().__init__(success_prob=0.6, **kw)
+
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    with pytest.raises(CorruptRunError, match=r"other settings: \['env'\]"):
+        _api(path, resume=True, env=Slippery)
+
+
+def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path):
+    path = tmp_path / "run.db"
+    api = _api(path, mode="passive", lam=1e-300, env=_CountingChain)
+    with pytest.raises(ValueError, match="not positive definite"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            api.run()  # bought, then the fit fails
+    api.close()
+    assert len(RunStore.read(path).episodes[1]) == 3  # the bought rewards are stored
+    before = _CountingChain.measured
+    resumed = _api(path, mode="passive", resume=True, device="cpu", env=_CountingChain)
+    assert resumed._pending is not None
+    resumed.run()
+    assert _CountingChain.measured - before == 3 * (2 + 2) * 10  # iteration 1 not bought again
+    reference = _api(mode="passive")
+    reference.run()
+    _same_run(reference, resumed)
+    assert resumed.rewarded_transitions == (3 + 2 + 2) * 10
+
+
+def test_a_second_process_on_the_same_run_is_refused_naming_the_holder(tmp_path):
+    path = tmp_path / "run.db"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(f"""
+                import sys, time
+                from torch_api.store import RunStore
+                store = RunStore({str(path)!r}, config={{}})
+                print("holding", flush=True)
+                sys.stdin.readline()
+            """),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        with pytest.raises(RunInUseError, match=rf"run.db is in use .*pid {holder.pid} on host"):
+            _api(path)
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=60)
+    _api(path, resume=True).close()  # the holder's end frees the run
+
+
+def test_a_second_writer_in_the_same_process_is_refused(tmp_path):
+    path = tmp_path / "run.db"
+    first = _api(path)
+    with pytest.raises(RunInUseError, match=f"pid {os.getpid()}"):
+        _api(path, resume=True)
+    first.close()
+
+
+@pytest.mark.parametrize("link", ["run.db", "run.db-wal", "run.db.lock"])
+def test_writes_never_follow_a_symlink(tmp_path, link):
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (tmp_path / link).symlink_to(target)
+    with pytest.raises(StoreWriteError, match="symbolic link"):
+        _api(tmp_path / "run.db")
+    assert target.read_text() == "keep me"
+    assert (tmp_path / link).is_symlink()
+
+
+@pytest.mark.parametrize("place", ["directory at the path", "parent is a file"])
+def test_an_unwritable_place_is_refused_before_anything_is_bought(tmp_path, place):
+    path = tmp_path / "run.db"
+    if place == "directory at the path":
+        path.mkdir()
+    else:
+        (tmp_path / "file").write_text("")
+        path = tmp_path / "file" / "run.db"
+    _CountingChain.measured = 0
+    with pytest.raises(StoreWriteError, match=str(path.parent if "parent" in place else path)):
+        _api(path, env=_CountingChain)
+    assert _CountingChain.measured == 0
+
+
+def test_a_read_only_directory_is_refused_before_anything_is_bought(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    os.chmod(ro, 0o500)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as root: a read-only directory is writable (disk full below)")
+        _CountingChain.measured = 0
+        with pytest.raises(StoreWriteError, match=f"cannot write the run {ro}"):
+            _api(ro / "run.db", env=_CountingChain)
+        assert _CountingChain.measured == 0 and os.listdir(ro) == []
+    finally:
+        os.chmod(ro, 0o700)
+
+
+def test_a_full_disk_is_one_clear_line_and_keeps_what_was_stored(tmp_path):
+    """A file-size limit (RLIMIT_FSIZE) stands in for a full disk: writes fail with EFBIG."""
+    path = tmp_path / "run.db"
+    script = textwrap.dedent(f"""
+        import resource, signal, sys
+        sys.path.insert(0, {str(ROOT / "tests")!r})
+        from test_checkpoint import _api
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        api = _api({str(path)!r})
+        api.step()
+        api.close()
+        api = _api({str(path)!r}, resume=True)
+        size = sum(p.stat().st_size for p in api.checkpoint_path.parent.iterdir())
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+        try:
+            api.run()
+        except Exception as error:
+            print("ERROR", type(error).__name__, error)
+    """)
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+        timeout=300,
+    )
+    line = [x for x in out.stdout.splitlines() if x.startswith("ERROR")]
+    assert line, out.stderr[-2000:]
+    assert line[0].startswith(f"ERROR StoreWriteError cannot write the run {path}: ")
+    assert len(RunStore.read(path).episodes[1]) == 3  # iteration 1 survives
+    left = {p.name for p in tmp_path.iterdir()}  # the log holds committed rows: it stays
+    assert left <= {"run.db", "run.db-wal", "run.db-shm", "run.db.lock"}, left
+
+
+def _flip(path: Path, offset: int, bit: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 1 << bit
+    path.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
+    """Flip one bit at 200 places spread over the file: each load is refused (naming the path,
+    never suggesting weights_only) or, where the bit lies in unused space, gives the very same
+    run; never another one. Refused loads leave the object as it was."""
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+        api._buy()
+    good = path.read_bytes()
+    reference = _api()
+    reference.load(path)
+    refused = same = 0
+    tries = 200
+    for i in range(tries):
+        offset = (i * 7919) % len(good)
+        path.write_bytes(good)
+        _flip(path, offset, i % 8)
+        target = _api()
+        try:
+            target.load(path)
+        except CorruptRunError as error:
+            assert str(path) in str(error) and "weights_only" not in str(error)
+            assert target.iteration == 0 and len(target.rewarded) == 0
+            refused += 1
+            continue
+        assert target.iteration == reference.iteration
+        assert torch.equal(target.theta, reference.theta)
+        ea, eb = target.rewarded.episodes(), reference.rewarded.episodes()
+        for key in ea.keys(True, True):
+            assert torch.equal(ea[key], eb[key])
+        assert target._pending["chosen"].tolist() == reference._pending["chosen"].tolist()
+        same += 1
+    print(f"{refused} of {tries} flips refused, {same} in unused bytes changed nothing")
+    assert refused + same == tries and refused > 0
+
+
+def test_flipped_payload_bytes_are_always_refused(tmp_path):
+    """Every bit of a stored episode's bytes is covered by its checksum."""
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    db = sqlite3.connect(path)
+    blob = db.execute("SELECT value FROM episode WHERE iteration = 1 AND episode = 1").fetchone()
+    db.close()
+    good = path.read_bytes()
+    start = good.index(blob[0][:64])
+    for k in range(0, len(blob[0]), max(1, len(blob[0]) // 40)):
+        path.write_bytes(good)
+        _flip(path, start + k, k % 8)
+        with pytest.raises(CorruptRunError, match=str(path)):
+            _api().load(path)
+
+
+@pytest.mark.parametrize("cut", [0.1, 0.5, 0.9])
+def test_truncated_file_is_refused_and_leaves_state_alone(tmp_path, cut):
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
     data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 2])
+    path.write_bytes(data[: int(len(data) * cut)])
     fresh = _api()
-    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+    with pytest.raises(CorruptRunError, match=str(path)):
         fresh.load(path)
     assert fresh.iteration == 0 and len(fresh.rewarded) == 0
 
 
 class _Payload:
     def __reduce__(self):
-        return (print, ("code ran",))
+        return (Path.write_text, (Path(os.environ["PAYLOAD_MARK"]), "code ran"))
 
 
-def test_checkpoint_carrying_a_pickled_object_is_refused(tmp_path):
-    path = tmp_path / "evil.pt"
-    torch.save({"format": 1, "evil": _Payload()}, path, pickle_module=pickle)
-    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+def test_a_pickle_at_the_path_is_refused_and_never_run(tmp_path, monkeypatch):
+    mark = tmp_path / "mark"
+    monkeypatch.setenv("PAYLOAD_MARK", str(mark))
+    path = tmp_path / "run.db"
+    torch.save({"format": 2, "evil": _Payload()}, path, pickle_module=pickle)
+    with pytest.raises(CorruptRunError, match=str(path)) as info:
+        _api().load(path)
+    assert "weights_only" not in str(info.value)
+    with pytest.raises(RunExistsError):
+        _api(path)  # not a run, but not ours to replace either
+    with pytest.raises(CorruptRunError, match=str(path)):
+        _api(path, resume=True)
+    assert not mark.exists()
+
+
+def _tamper(path: Path, sql: str, *args) -> None:
+    db = sqlite3.connect(path)
+    db.execute(sql, args)
+    db.commit()
+    db.close()
+
+
+@pytest.mark.parametrize(
+    "sql",
+    [
+        "DROP TABLE selection",
+        "DELETE FROM meta WHERE key = 'config'",
+        "UPDATE meta SET value = x'7b7b' WHERE key = 'format'",  # not JSON
+        "UPDATE record SET iteration = 5",
+        "DELETE FROM episode WHERE episode = 1",
+        "UPDATE episode SET value = x'ffffffffffffffff00'",  # a header larger than the blob
+    ],
+)
+def test_malformed_content_is_refused_naming_the_path(tmp_path, sql):
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    _tamper(path, sql)
+    fresh = _api()
+    with pytest.raises(CorruptRunError, match=str(path)) as info:
+        fresh.load(path)
+    assert "weights_only" not in str(info.value)
+    assert fresh.iteration == 0 and len(fresh.rewarded) == 0
+
+
+def test_tampered_rows_with_recomputed_digests_are_still_bounded(tmp_path):
+    """A blob that claims a huge tensor is refused before anything that size is built."""
+    from torch_api.store import _digest
+
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    header = b'{"batch_size": [3, 10], "leaves": [{"key": ["x"], "dtype": "float64", '
+    header += b'"shape": [1000000000000], "offset": 0}]}'
+    blob = len(header).to_bytes(8, "little") + header
+    _tamper(
+        path,
+        "UPDATE episode SET value = ?, digest = ? WHERE iteration = 1 AND episode = 0",
+        blob,
+        _digest("episode", (1, 0), blob),
+    )
+    with pytest.raises(CorruptRunError, match="outside"):
         _api().load(path)
 
 
-def test_wrong_format_version_is_refused(tmp_path):
-    path = tmp_path / "run.pt"
-    api = _api(path)
-    api.step()
-    state = api.state_dict()
-    state["format"] = 99
-    torch.save(state, path)
-    with pytest.raises(ValueError, match="checkpoint format 99"):
-        _api().load(path)
+class _NanChain(ChainWalkEnv):
+    """Measures NaN in episode 1 of trial 2 of iteration 2's rewarded batch (while broken)."""
 
-
-def test_save_is_atomic_no_temporary_file_left(tmp_path):
-    path = tmp_path / "run.pt"
-    _api(path).step()
-    assert path.exists() and not (tmp_path / "run.pt.tmp").exists()
-
-
-class _FaultyChain(ChainWalkEnv):
-    """A robot that breaks down on its 3rd step of rewarded collection in iteration 2."""
-
-    steps = 0
+    broken = True
 
     def _step(self, td):
-        if self.batch_size[0] == 3 * 2:  # the rewarded env of T = 3 trials, M_2 = 2
-            type(self).steps += 1
-            if type(self).steps == 3:
-                raise OSError("arm controller stopped responding")
-        return super()._step(td)
+        out = super()._step(td)
+        if self.broken and self.batch_size[0] == 3 * 2:  # rewarded env: T = 3 trials, M_2 = 2
+            out["reward"][2 * 2 + 1] = math.nan
+        return out
 
 
-def test_env_fault_while_buying_keeps_earlier_rewards_and_names_the_failure(tmp_path):
-    path = tmp_path / "run.pt"
-    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    api = ActivePolicyIteration(
-        env=lambda e: _FaultyChain(batch_size=e),
-        basis=basis,
-        schedule=(3, 2, 2),
-        num_steps=10,
-        gamma=GAMMA,
-        num_repeats=2,
-        psi_mode="grouped",
-        num_trials=3,
-        seed=7,
-        checkpoint_path=path,
-    )
+def test_one_bad_reward_is_named_and_the_valid_episodes_are_stored(tmp_path):
+    path = tmp_path / "run.db"
+    api = _api(path, env=_NanChain)
+    api.step()
+    with pytest.raises(ValueError, match=r"iteration 2: episode 1 of trial 2: rewards must be"):
+        api.step()
+    api.close()
+    stored = RunStore.read(path)
+    assert sorted(stored.episodes[2]) == [0]  # episode 0 of every trial is kept
+    _NanChain.broken = False
+    resumed = _api(path, resume=True, env=_NanChain)  # a repaired env buys episode 1 again
+    assert sorted(resumed._partial) == [0]
+    resumed.run()
+    assert resumed.rewarded_transitions == (3 + 2 + 2) * 10
+
+
+def test_env_fault_while_buying_keeps_earlier_rewards_and_names_the_failure(tmp_path, full):
+    class Faulty(ChainWalkEnv):
+        steps = 0
+        broken = True
+
+        def _step(self, td):
+            if self.broken and self.batch_size[0] == 3 * 2:
+                type(self).steps += 1
+                if type(self).steps == 3:
+                    raise OSError("arm controller stopped responding")
+            return super()._step(td)
+
+    path = tmp_path / "run.db"
+    api = _api(path, env=Faulty)
     api.step()
     with pytest.raises(RuntimeError, match="iteration 2 failed: OSError: arm controller") as info:
         api.step()
     assert "The 3 episodes bought before (per trial) are kept" in str(info.value)
-    assert len(api.rewarded) == 3
-    resumed = _api()  # same settings, a healthy robot
-    resumed.load(path)
+    api.close()
+    Faulty.broken = False
+    resumed = _api(path, resume=True, env=Faulty)  # the same robot, repaired
     assert len(resumed.rewarded) == 3 and resumed.iteration == 1
     resumed.run()
-    full = _api()
-    full.run()
-    _same_history(full, resumed)
+    _same_run(full, resumed)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"num_steps": 2.5}, "num_steps must be an integer"),
+        ({"schedule": (2.7, 1.9)}, "integer episode counts"),
+        ({"schedule": (True, 2)}, "integer episode counts"),
+        ({"lam": math.nan}, "lam must be > 0, got nan"),
+        ({"lam": math.inf}, "lam must be finite, got inf"),
+        ({"knn_k": 2.5}, "knn_k must be an integer"),
+    ],
+)
+def test_non_integer_counts_and_bad_lambda_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        _api(**kwargs)
+
+
+def test_a_huge_lambda_warns():
+    with pytest.warns(RuntimeWarning, match="lam = 1e\\+308 is huge"):
+        _api(lam=1e308)
+
+
+def test_nan_sampling_probabilities_are_refused():
+    from torch_api.data import EpisodeBuffer, collect_episodes
+    from torch_api.policies import LinearQPolicy
+
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    policy = LinearQPolicy(basis=basis, theta=torch.ones(basis.num_features), epsilon=0.1)
+    episodes = collect_episodes(
+        ChainWalkEnv(batch_size=2, seed=0), policy, num_episodes=2, num_steps=3, rewarded=True
+    )
+    probs = episodes["sample_probs"].clone()
+    probs[0, 1] = torch.tensor([math.nan, 1.0], dtype=torch.float64)  # [nan, 1]
+    episodes["sample_probs"] = probs
+    with pytest.raises(ValueError, match="sample_probs rows must be probabilities"):
+        EpisodeBuffer(rewarded=True, capacity=4).extend(episodes)
+
+
+def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
+    """Even with a matching checksum (anyone who can write the file can compute one), a row
+    holding a pickle is refused by the decoder and its code never runs."""
+    from torch_api.store import _digest
+
+    mark = tmp_path / "mark"
+    monkeypatch.setenv("PAYLOAD_MARK", str(mark))
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    blob = pickle.dumps(_Payload())
+    _tamper(
+        path,
+        "UPDATE episode SET value = ?, digest = ? WHERE iteration = 1 AND episode = 0",
+        blob,
+        _digest("episode", (1, 0), blob),
+    )
+    with pytest.raises(CorruptRunError, match=str(path)) as info:
+        _api().load(path)
+    assert "weights_only" not in str(info.value)
+    assert not mark.exists()

@@ -10,8 +10,10 @@ import importlib.util
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -202,3 +204,70 @@ def test_torchrl_pipeline(tmp_path):
     assert all(len(h["j_mean"]) == 3 for h in history)  # two θ policies and the actor
     assert history[-1]["rewarded_transitions"] == 2 * 2 * 20  # MountainCar: no early end here
     assert all(math.isfinite(x) for x in _numbers(payload["history"]))
+
+
+# -- durable runs: a killed or interrupted example resumes to the uninterrupted numbers ----------
+
+
+def _start(script: str, *args: str) -> subprocess.Popen:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env["OMP_NUM_THREADS"] = "1"
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "examples" / script), *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for_episodes(store: Path, rows: int, proc: subprocess.Popen) -> None:
+    """Until the run at ``store`` holds at least ``rows`` bought episode rows."""
+    from torch_api.store import RunStore, StoreError
+
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if store.exists() and RunStore.read(store).num_episodes >= rows:
+                return
+        except StoreError:
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"{store} never held {rows} episode rows")
+
+
+def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_one_chunk, tmp_path):
+    args = (*CHUNK_RUN, "--chunks", "1", "--out-dir", str(tmp_path))
+    proc = _start("chain_walk_api.py", *args)
+    _wait_for_episodes(tmp_path / "checkpoints" / "decreasing_AL.db", 5, proc)  # iteration 1
+    proc.kill()
+    proc.communicate(timeout=60)
+    again = _start("chain_walk_api.py", *args)
+    _, err = again.communicate(timeout=120)
+    assert again.returncode == 1 and "add --resume to continue them or --overwrite" in err
+    out = _run("chain_walk_api.py", *args, "--resume")
+    assert "resumed" in out and "decreasing_AL.db at iteration" in out
+    resumed = json.loads((tmp_path / "chain_walk_api.json").read_text())
+    assert _without_times(resumed) == _without_times(chain_walk_one_chunk)
+
+
+def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
+    args = ("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2")
+    args += ("--test-episodes", "2", "--test-steps", "20")
+    fresh = _run("gym_drop_in.py", *args, "--out-dir", str(tmp_path / "ref"), "--resume")
+    assert "starting it fresh" in fresh
+    expected = json.loads((tmp_path / "ref" / "gym_drop_in.json").read_text())
+    args += ("--out-dir", str(tmp_path))
+    proc = _start("gym_drop_in.py", *args)
+    _wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-3000:]
+    last = err.strip().splitlines()[-1]  # (after the progress bars)
+    assert "Traceback" not in err and last.startswith("interrupted at iteration "), err[-3000:]
+    assert last.endswith(f"stored in {tmp_path / 'checkpoints'}; continue with --resume")
+    _run("gym_drop_in.py", *args, "--resume")
+    resumed = json.loads((tmp_path / "gym_drop_in.json").read_text())
+    assert _without_times(resumed["runs"]) == _without_times(expected["runs"])

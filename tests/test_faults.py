@@ -1,58 +1,155 @@
-"""Kill runs at random points; every resume must finish with the uninterrupted run's numbers.
+"""Real SIGKILLs of real runs at many points; every bought reward survives, none is bought twice.
 
-Each run has about 90 kill-able events (environment steps during reward-free and rewarded
-collection, checkpoint writes, iteration boundaries; see fault_driver.py). The test kills runs
-at random events until MIN_KILLS kills have happened, resuming each time from the checkpoint;
-a run that completes is compared with the uninterrupted reference and a fresh one is started.
+Each run (tests/fault_driver.py, forked from a server process that imported everything once)
+counts its reward measurements in a file written by the rewarded environment. Runs are killed
+with SIGKILL at random events (inside reward-free collection, inside a rewarded slice, inside a
+store transaction between its rows and its commit, right after a commit with the bought rewards
+not yet fitted, between iterations) and, a few times, by the test at a random moment; each is
+resumed until it completes. Checked after every kill and at the end:
+
+* the rewarded episodes stored never decrease (none lost);
+* the measurements of a killed process exceed what it stored by at most one slice (the slice in
+  flight), so nothing is measured twice beyond it;
+* the completed run equals the uninterrupted one: θ, choices, J', and every bought episode
+  tensor by tensor; each bought reward is stored exactly once.
 """
 
 import json
+import os
 import random
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import pytest
+
+from torch_api.store import RunStore
+
 DRIVER = Path(__file__).with_name("fault_driver.py")
-KILLED = 137
-MIN_KILLS = 20
+KILLED = -signal.SIGKILL
+KILLS = {"all": 14, "episode": 8}  # event kills per mode (events per run: ~115 / ~160)
+EVENTS = {"all": 115, "episode": 160}
+TIMED_KILLS = 2  # per mode: SIGKILL from outside at a random moment
+AIMED = [  # first kills of each mode: at these points for sure, then at random events
+    "inside_a_transaction@4",  # a fresh run: the 1st row of the 1st slice written, no commit
+    "after_put_episodes@1",  # rewards of iteration 1 bought and stored, θ_1 not fitted
+    "rewarded_step@5",  # in the middle of a rewarded slice
+    "after_put_episodes@1",  # (in the resumed run: the next slice stored, not fitted)
+]
+TRIALS, STEPS, SCHEDULE = 2, 10, (3, 2, 2, 1)  # as in fault_driver.py
 
 
-def _run(checkpoint: Path, result: Path, kill_at: int) -> int:
-    return subprocess.run(
-        [sys.executable, str(DRIVER), str(checkpoint), str(result), str(kill_at)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    ).returncode
+class Server:
+    """tests/fault_driver.py serve: forks one run per request."""
+
+    def __init__(self, log: Path) -> None:
+        self.log = open(log, "w")  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [sys.executable, str(DRIVER), "serve"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            text=True,
+        )
+
+    def _answer(self, word: str) -> int:
+        for line in self.proc.stdout:  # (skipping anything else a child printed)
+            if line.startswith(word + " "):
+                return int(line.split()[1])
+        raise RuntimeError("the fault server ended: see its log")
+
+    def run(self, *args, kill_after: float | None = None) -> int:
+        self.proc.stdin.write(" ".join(map(str, args)) + "\n")
+        self.proc.stdin.flush()
+        pid = self._answer("pid")
+        if kill_after is not None:
+            time.sleep(kill_after)
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:  # already done and reaped
+                pass
+        return self._answer("exit")
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+        self.log.close()
 
 
-def _numbers(result: Path) -> dict:
-    got = json.loads(result.read_text())
-    got.pop("events")  # a resumed run replays fewer events
-    return got
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    server = Server(tmp_path_factory.mktemp("server") / "server.log")
+    yield server
+    server.close()
 
 
-def test_killed_runs_resume_to_the_same_result(tmp_path):
-    reference = tmp_path / "reference.json"
-    assert _run(tmp_path / "reference.pt", reference, -1) == 0
-    expected = _numbers(reference)
-    assert expected["episodes_per_trial"] == 3 + 2 + 2 + 1
-    assert expected["iteration_tags"][0] == [1, 1, 1, 2, 2, 3, 3, 4]
+def _count(measured: Path) -> int:
+    """Rewarded transitions measured so far (one line per step: the rows it measured)."""
+    return sum(int(x) for x in measured.read_text().split()) if measured.exists() else 0
 
-    rng = random.Random(0)
-    checkpoint, result = tmp_path / "run.pt", tmp_path / "run.json"
-    kills = completed = 0
-    while kills < MIN_KILLS or not result.exists():
-        code = _run(checkpoint, result, rng.randint(1, 30) if kills < MIN_KILLS else -1)
-        if code == KILLED:
-            kills += 1
-            continue
-        assert code == 0
-        # same θ, choices and J', the very same bought episodes: none twice, none lost
-        assert _numbers(result) == expected
-        completed += 1
-        if kills < MIN_KILLS:  # start a fresh run to kill
-            checkpoint.unlink()
-            result.unlink()
-    assert kills == MIN_KILLS and completed >= 1
-    print(f"{kills} kills, {completed} completed runs, all equal to the uninterrupted run")
+
+def _stored(path: Path) -> int:
+    """Rewarded transitions stored in the run (every trial)."""
+    if not path.exists():
+        return 0
+    stored = RunStore.read(path)
+    return sum(len(e) for e in stored.episodes.values()) * TRIALS * STEPS
+
+
+@pytest.mark.parametrize("slice_mode", ["all", "episode"])
+def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_mode):
+    files = [tmp_path / f"reference.{x}" for x in ("db", "count", "json")]
+    assert server.run(*files, -1, slice_mode) == 0
+    expected = json.loads(files[2].read_text())
+    reference_measured = _count(files[1])
+    assert reference_measured == sum(SCHEDULE) * TRIALS * STEPS
+    slice_size = TRIALS * STEPS * (max(SCHEDULE) if slice_mode == "all" else 1)
+    rng = random.Random(14)
+    kills = timed = runs = 0
+    measured_all = wasted_all = 0
+    while kills < KILLS[slice_mode] or timed < TIMED_KILLS:
+        runs += 1
+        path, measured, result = (tmp_path / f"run{runs}.{x}" for x in ("db", "count", "json"))
+        wasted = 0
+        while True:
+            stored_before, measured_before = _stored(path), _count(measured)
+            kill_at = kill_after = None
+            if kills < len(AIMED):
+                kill_at = AIMED[kills]
+            elif kills < KILLS[slice_mode]:
+                kill_at = rng.randint(1, EVENTS[slice_mode])
+            elif timed < TIMED_KILLS:
+                kill_after = rng.uniform(0.2, 1.0)
+            code = server.run(
+                path, measured, result, kill_at or -1, slice_mode, kill_after=kill_after
+            )
+            stored_after, measured_after = _stored(path), _count(measured)
+            assert stored_after >= stored_before, "stored rewards were lost"
+            lost = (measured_after - measured_before) - (stored_after - stored_before)
+            if code == KILLED:
+                assert 0 <= lost <= slice_size, f"{lost} transitions measured and not kept"
+                wasted += lost
+                kills += kill_at is not None
+                timed += kill_after is not None
+                continue
+            assert code == 0, "the run failed: see the server log"
+            assert lost == 0
+            break
+        got = json.loads(result.read_text())
+        assert got == expected  # θ, choices, J' and every bought episode, tensor by tensor
+        assert _stored(path) == reference_measured  # each bought reward stored exactly once
+        assert _count(measured) == reference_measured + wasted
+        measured_all, wasted_all = measured_all + _count(measured), wasted_all + wasted
+    kinds = set()
+    for i in range(1, runs + 1):
+        kills_file = tmp_path / f"run{i}.count.kills"
+        kinds |= set(kills_file.read_text().split("\n")) if kills_file.exists() else set()
+    assert {"rewarded step", "inside a transaction", "after put_episodes"} <= kinds, kinds
+    print(
+        f"{slice_mode}: {kills} + {timed} SIGKILLs in {runs} runs, all equal to the reference; "
+        f"{measured_all} rewarded transitions measured for {runs * reference_measured} kept, "
+        f"{wasted_all} in slices cut by a kill"
+    )
+    print(f"killed at: {sorted(kinds - {''})}")

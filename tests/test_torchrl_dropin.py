@@ -138,8 +138,9 @@ def test_batched_env_factories(factory):
         assert applied_share(api.rewarded.episodes()) == 1.0
         assert api.rewarded_transitions > 0 and torch.isfinite(api.theta).all()
     finally:
-        for env in api._env_for._built.values():
-            env.close()
+        built = list(api._env_for._built.values())
+        api.close()
+    assert built and all(env.is_closed for env in built)
 
 
 def test_frozen_lake_index_observations_with_grouped_psi_hat():
@@ -365,3 +366,34 @@ def test_iteration_and_selector_read_episodes_from_the_users_collector():
     )
     choice = selector.select(api.policy, [api.policy, _actor(cartpole())], bought)
     assert choice.episodes.shape == (1, 2, 2, 10) and torch.isfinite(choice.j_mean).all()
+
+
+def test_reward_free_workers_write_the_envs_encoding():
+    psi = PsiHat(basis=cartpole_basis(), gamma=0.95)
+    policy = LinearQPolicy(basis=cartpole_basis(), theta=torch.ones(8), epsilon=0.3)
+    selector = SamplingPolicySelector(
+        env=cartpole_rows, psi=psi, num_episodes=2, num_steps=6, num_repeats=1, num_workers=1
+    )
+    choice = selector.select(policy, [policy, policy.with_rule(epsilon=0.8)])
+    assert applied_share(choice.episodes) == 1.0
+
+
+def test_missing_sampling_probabilities_name_the_keys_that_work():
+    def no_probs(td):
+        td["action"] = torch.tensor([1, 0])
+        return td
+
+    with pytest.raises(ValueError, match="sample_log_prob' / 'action_log_prob"):
+        collect_episodes(cartpole(), no_probs, num_episodes=1, num_steps=2, rewarded=True)
+
+
+def test_lstd_selector_takes_an_actor_candidate():
+    env = cartpole()
+    psi = PsiHat(basis=cartpole_basis(), gamma=0.95)
+    evaluation = _collector_policy(env, epsilon=0.2)
+    earlier = collect_episodes(env, evaluation, num_episodes=2, num_steps=6, rewarded=True)
+    selector = SamplingPolicySelector(
+        env=lambda rows: cartpole(), psi=psi, num_episodes=2, num_steps=8, num_repeats=1, fit="lstd"
+    )
+    choice = selector.select(evaluation, [evaluation, _actor(env)], earlier_episodes=earlier)
+    assert choice.j_mean.shape == (2,) and torch.isfinite(choice.j_mean).all()

@@ -6,8 +6,10 @@ import csv
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -76,19 +78,21 @@ def test_outputs_exist_and_rewards_match_schedule(uninterrupted):
 def test_interrupted_and_resumed_run_matches(uninterrupted, tmp_path):
     reference, proc = uninterrupted
     assert proc.returncode == 0, proc.stderr[-3000:]
-    # Stop right after the AL run bought its second batch (checkpoints: buy, iteration, buy).
-    first = run_script(tmp_path, "--stop-after-checkpoints", "3")
+    # Stop right after the AL run bought its second batch (commits: selection, episodes,
+    # iteration; selection, episodes).
+    first = run_script(tmp_path, "--stop-after-checkpoints", "5")
     assert first.returncode == INTERRUPTED, first.stderr[-3000:]
     assert not (tmp_path / "train_batting.json").exists()
-    # Resume: AL fits iteration 2 without buying again (1), PL buys (2) and fits (3), stop.
-    second = run_script(tmp_path, "--resume", "--stop-after-checkpoints", "3")
+    # Resume: AL fits iteration 2 without buying again (1), PL selects (2), buys (3) and fits
+    # (4), stop.
+    second = run_script(tmp_path, "--resume", "--stop-after-checkpoints", "4")
     assert second.returncode == INTERRUPTED, second.stderr[-3000:]
-    assert "decreasing_active.pt at iteration 1/2" in second.stdout
+    assert "decreasing_active.db at iteration 1/2" in second.stdout
     # Resume again: AL is complete and is not recomputed; PL continues from iteration 1.
     third = run_script(tmp_path, "--resume")
     assert third.returncode == 0, third.stderr[-3000:]
-    assert "decreasing_active.pt at iteration 2/2" in third.stdout
-    assert "decreasing_passive.pt at iteration 1/2" in third.stdout
+    assert "decreasing_active.db at iteration 2/2" in third.stdout
+    assert "decreasing_passive.db at iteration 1/2" in third.stdout
     expected = numbers(json.loads((reference / "train_batting.json").read_text()))
     resumed = numbers(json.loads((tmp_path / "train_batting.json").read_text()))
     assert resumed == expected
@@ -102,8 +106,8 @@ def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     chunked = run_script(tmp_path, "--chunks", "2")
     assert chunked.returncode == 0, chunked.stderr[-3000:]
-    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
-    expected_names = [f"decreasing_{m}_chunk{c}of2.pt" for m in MODES for c in (1, 2)]
+    names = sorted(p.name for p in (tmp_path / "checkpoints").glob("*.db"))
+    expected_names = [f"decreasing_{m}_chunk{c}of2.db" for m in MODES for c in (1, 2)]
     assert names == expected_names
     expected = numbers(json.loads((reference / "train_batting.json").read_text()))
     assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
@@ -112,13 +116,15 @@ def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
 def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
     reference, proc = uninterrupted
     assert proc.returncode == 0, proc.stderr[-3000:]
-    # Checkpoints: AL chunk 1 buys, fits, buys (3); stop. Resume: chunk 1 continues, chunk 2 anew.
-    first = run_script(tmp_path, "--chunks", "2", "--stop-after-checkpoints", "3")
+    # Commits: AL chunk 1 selects, buys, fits, selects, buys (5); stop. Resume: chunk 1
+    # continues, chunk 2 anew.
+    first = run_script(tmp_path, "--chunks", "2", "--stop-after-checkpoints", "5")
     assert first.returncode == INTERRUPTED, first.stderr[-3000:]
     second = run_script(tmp_path, "--chunks", "2", "--resume")
     assert second.returncode == 0, second.stderr[-3000:]
-    assert "decreasing_active_chunk1of2.pt at iteration 1/2" in second.stdout
-    assert "decreasing_active_chunk2of2.pt" not in second.stdout  # nothing to resume there
+    assert "decreasing_active_chunk1of2.db at iteration 1/2" in second.stdout
+    assert "nothing stored in" in second.stdout  # chunk 2 had not started: it starts fresh
+    assert "decreasing_active_chunk2of2.db: starting it fresh" in second.stdout
     expected = numbers(json.loads((reference / "train_batting.json").read_text()))
     assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
 
@@ -139,6 +145,126 @@ def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrup
     for kind in ("coarse", "fine"):
         assert payload["physics_steps"][kind] == sum(r["physics_steps"][kind] for r in runs)
     assert payload["physics_steps"]["coarse"] > 0
+
+
+def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_path):
+    first = run_script(tmp_path, "--stop-after-checkpoints", "2")  # iteration 1 bought
+    assert first.returncode == INTERRUPTED
+    stored = (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes()
+    again = run_script(tmp_path)
+    assert again.returncode == 1
+    assert "runs are stored already" in again.stderr and "--resume" in again.stderr
+    assert len(again.stderr.strip().splitlines()) == 1
+    assert (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes() == stored
+    both = run_script(tmp_path, "--resume", "--overwrite")
+    assert both.returncode == 2 and "exclude each other" in both.stderr
+    fresh = run_script(tmp_path, "--overwrite", "--stop-after-checkpoints", "1")  # a selection
+    assert fresh.returncode == INTERRUPTED, fresh.stderr[-3000:]
+    from torch_api.store import RunStore
+
+    assert RunStore.read(tmp_path / "checkpoints" / "decreasing_active.db").episodes == {}
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to find the workers")
+def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
+    uninterrupted, tmp_path
+):
+    """A SIGKILL mid-run, then a resume stopped by SIGTERM (the commit in flight completes, one
+    line, exit 143), then a resume to the end: the uninterrupted run's numbers. SIGKILL of the
+    parent with --backend processes: its workers are gone within seconds."""
+    reference, proc = uninterrupted
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    store = tmp_path / "checkpoints" / "decreasing_active.db"
+
+    def start(*extra):
+        return subprocess.Popen(
+            [sys.executable, str(SCRIPT), *TINY, "--out-dir", str(tmp_path), *extra],
+            env=env,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    def once_storing(proc, seconds):
+        """Until ``proc`` holds the run's lock (its pid is in the lock file), then seconds."""
+        lock = Path(f"{store}.lock")
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if lock.exists() and f"pid {proc.pid} " in lock.read_text():
+                break
+            time.sleep(0.05)
+        time.sleep(seconds)
+
+    killed = start()
+    once_storing(killed, 0.5)
+    killed.kill()
+    killed.communicate(timeout=60)
+    stopped = start("--resume")
+    once_storing(stopped, 1.0)
+    stopped.send_signal(signal.SIGTERM)
+    _, err = stopped.communicate(timeout=120)
+    assert stopped.returncode == 128 + signal.SIGTERM, err[-3000:]
+    last = err.strip().splitlines()[-1]  # (after the progress bars)
+    assert "Traceback" not in err and last.startswith("interrupted at iteration "), err[-3000:]
+    assert last.endswith(f"episodes stored in {tmp_path / 'checkpoints'}; continue with --resume")
+    done = run_script(tmp_path, "--resume")
+    assert done.returncode == 0, done.stderr[-3000:]
+    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
+    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+
+    out = tmp_path / "processes"
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            str(SCRIPT),
+            *TINY,
+            "--out-dir",
+            str(out),
+            "--backend",
+            "processes",
+            "--workers",
+            "2",
+            "--chunks",
+            "2",
+        ],
+        env=env,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 120
+    while not list((out / "checkpoints").glob("*.db")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    workers = [k for k in _children(parent.pid) if _running(k)]
+    assert workers, "no worker processes found"
+    parent.kill()
+    parent.wait(timeout=30)
+    deadline = time.monotonic() + 60  # (a worker still importing torch dies once it is done)
+    while any(_running(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_running(w) for w in workers), "workers outlived their killed parent"
 
 
 def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):

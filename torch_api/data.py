@@ -115,6 +115,14 @@ class EnvPerBatch:
             self._built[batch] = self.env(batch)
         return self._built[batch]
 
+    def close(self) -> None:
+        """Close the envs the factory built (a ``ParallelEnv``'s worker processes end); an env
+        given as such is the caller's to close. Later calls build afresh."""
+        built, self._built = self._built, {}
+        for env in built.values():
+            if not getattr(env, "is_closed", False):
+                env.close()
+
 
 def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:
     """Action indices ``[E, N]`` from indices ``[E, N]``, ``[E, N, 1]`` or one-hot ``[E, N, A]``."""
@@ -381,6 +389,7 @@ def collect_episodes(
     rewarded: bool,
     iteration: int = 0,
     policy_id: int | torch.Tensor = 0,
+    validate: bool = True,
 ) -> TensorDict:
     """Collect ``num_episodes`` episodes of ``num_steps`` steps with ``policy`` on ``env``.
 
@@ -414,6 +423,8 @@ def collect_episodes(
             (reward-free data: nothing downstream can read it).
         iteration, policy_id: tags stored with every step (``policy_id`` may be a ``[*T]``
             tensor: one id per trial).
+        validate: check the episodes (:func:`validate_episodes`) before returning them;
+            False leaves it to the caller (e.g. to keep the valid episodes of a batch).
 
     Returns:
         TensorDict ``[*T, M, N]`` in the format of this module's docstring.
@@ -453,7 +464,8 @@ def collect_episodes(
     episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
     ids = torch.as_tensor(policy_id, dtype=torch.long)
     episodes["policy_id"] = ids.reshape(*ids.shape, 1, 1).expand(episodes.shape).clone()
-    validate_episodes(episodes, rewarded=rewarded)
+    if validate:
+        validate_episodes(episodes, rewarded=rewarded)
     return episodes
 
 
@@ -615,7 +627,7 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
         probs = episodes[SAMPLE_PROBS][mask]
         if probs.numel():
             off = (probs.sum(-1) - 1).abs().max().item()
-            if off > 1e-6 or (probs < 0).any():
+            if not off <= 1e-6 or (probs < 0).any() or not torch.isfinite(probs).all():
                 raise ValueError(
                     f"sample_probs rows must be probabilities summing to 1 (one is off by "
                     f"{off:.3g})"

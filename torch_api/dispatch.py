@@ -10,12 +10,21 @@ room, and the results concatenated along the trial axis. For environments with
 ``backend="processes"`` runs the chunks in a pool of local worker processes: on a machine whose
 work alternates between native physics and single-threaded algebra, two or more chunks in flight
 keep every core busy. ``backend="ray"`` needs the ``ray`` extra (``pip install torch-api[ray]``).
+
+Workers die with their parent: a local worker asks the kernel for SIGKILL when its parent dies
+(Linux ``PR_SET_PDEATHSIG``) and, everywhere, a watchdog thread ends it once its parent is gone;
+a Ray task on the parent's host does the same when the parent process is gone. An interrupted
+``run_chunks`` (SIGINT, SIGTERM, an error) terminates its local workers before returning. A
+worker killed half-way through a chunk loses at most what its run had not yet committed; with
+``ActivePolicyIteration(checkpoint_path=...)`` the run's lock keeps a resume from racing a
+worker that is still finishing.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import socket
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, TypeVar
@@ -23,6 +32,7 @@ from typing import Any, TypeVar
 import torch
 
 from torch_api.iteration import derive_seed
+from torch_api.lifetime import die_with_parent
 
 __all__ = ["BACKENDS", "run_chunks", "split_trials", "threads_per_worker", "trial_seeds"]
 
@@ -72,8 +82,16 @@ def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, parent: int) -> None:
+    die_with_parent(parent)
     torch.set_num_threads(threads)
+
+
+def _guarded_call(fn, pid: int, host: str, chunk):
+    """``fn(chunk)`` as a Ray task that dies with the driver process ``pid`` on ``host``."""
+    if socket.gethostname() == host:
+        die_with_parent(pid, direct=False)
+    return fn(chunk)
 
 
 def _import_ray():
@@ -133,13 +151,24 @@ def run_chunks(
         workers = workers or os.cpu_count() or 1
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        with ProcessPoolExecutor(
+        pool = ProcessPoolExecutor(
             max_workers=min(workers, len(chunks)),
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(threads_per_worker(workers),),
-        ) as pool:
-            return list(pool.map(fn, chunks))
+            initargs=(threads_per_worker(workers), os.getpid()),
+        )
+        try:
+            results = list(pool.map(fn, chunks))
+        except BaseException:  # interrupted or failed: no worker outlives the call
+            processes = list((getattr(pool, "_processes", None) or {}).values())
+            for process in processes:
+                process.terminate()  # SIGTERM: a commit in flight completes (SQLite)
+            pool.shutdown(wait=False, cancel_futures=True)
+            for process in processes:
+                process.join(timeout=10)
+            raise
+        pool.shutdown()
+        return results
     ray = _import_ray()
     started_here = not ray.is_initialized()
     if started_here:
@@ -149,8 +178,9 @@ def run_chunks(
             options["num_cpus"] = num_cpus
         ray.init(address=address, **options)
     try:
-        task = ray.remote(num_cpus=1)(fn)
-        return ray.get([task.remote(chunk) for chunk in chunks])
+        task = ray.remote(num_cpus=1)(_guarded_call)
+        driver = (os.getpid(), socket.gethostname())
+        return ray.get([task.remote(fn, *driver, chunk) for chunk in chunks])
     finally:
         if started_here:
             ray.shutdown()

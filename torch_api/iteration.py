@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
-import json
+import hashlib
 import logging
 import math
+import numbers
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
@@ -25,6 +27,7 @@ from torch_api.data import (
     collect_episodes,
     collect_with_collector,
     seed_env,
+    validate_episodes,
 )
 from torch_api.design import build_design
 from torch_api.lstd import phi_rows, weighted_lstd
@@ -37,10 +40,10 @@ from torch_api.selector import (
     candidate_epsilons,
 )
 from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
+from torch_api.store import CorruptRunError, RunStore, StoredRun
 
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed", "paper_epsilon"]
 
-CHECKPOINT_FORMAT = 1  # version of the checkpoint layout written by ActivePolicyIteration.save
 _log = logging.getLogger(__name__)
 _STREAMS = {
     "policy": 0,
@@ -50,6 +53,9 @@ _STREAMS = {
     "trial": 4,
     "reward_free_policy": 5,
 }
+_SLICE_STREAMS = {"policy": 6, "rewarded_env": 7}  # per-episode slices (rewarded_slice="episode")
+SLICES = ("all", "episode")
+HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
 
 MODES = ("active", "passive")
 IMPROVEMENTS = ("epsilon_greedy", "softmax")
@@ -69,6 +75,76 @@ def derive_seed(seed: int, iteration: int, stream: str) -> int:
     """
     entropy = [int(seed) & 0xFFFFFFFF, int(iteration), _STREAMS[stream]]
     return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def _check_lambda(lam: float) -> None:
+    """λ must be a finite number > 0; a huge one (θ shrunk to about 0) is warned about."""
+    if not (isinstance(lam, numbers.Real) and lam > 0):
+        raise ValueError(f"lam must be > 0, got {lam}")
+    if not math.isfinite(lam):
+        raise ValueError(f"lam must be finite, got {lam}")
+    if lam > HUGE_LAMBDA:
+        warnings.warn(
+            f"lam = {lam:g} is huge: the ridge penalty dominates every design and θ shrinks to "
+            "about 0 whatever the rewards",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
+    """Seed of one stream of rewarded episode m (0-based) of iteration l, for runs that buy
+    one episode at a time (``rewarded_slice="episode"``): a resume continues at any episode."""
+    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), _SLICE_STREAMS[stream], int(episode)]
+    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def _count(name: str, value, minimum: int = 1) -> int:
+    """``value`` as an int >= minimum; a non-integer (2.5, True, "3") is refused."""
+    integral = isinstance(value, numbers.Integral) or (
+        isinstance(value, float) and value.is_integer()
+    )
+    if isinstance(value, bool) or not integral:
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _plain(value):
+    """A JSON-able, exact description of a setting's value (tensors by digest)."""
+    if isinstance(value, torch.Tensor):
+        data = value.detach().cpu().contiguous()
+        digest = hashlib.sha256(data.view(torch.uint8).numpy().tobytes()).hexdigest()
+        return {"dtype": str(data.dtype), "shape": list(data.shape), "sha256": digest}
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    if isinstance(value, (tuple, list)) and all(
+        isinstance(v, (bool, int, float, str)) for v in value
+    ):
+        return [_plain(v) for v in value]
+    return None  # not a plain setting: left out
+
+
+_NOT_IDENTITY = {"batch_size", "seed", "rng", "device", "training", "num_envs", "nthread"}
+
+
+def fingerprint(obj) -> dict:
+    """What identifies an environment or a basis: its class, the tensors of its state and its
+    public plain attributes (numbers, strings, tensors), batch size, seeds and device left out.
+    """
+    out = {"class": f"{type(obj).__module__}.{type(obj).__qualname__}"}
+    if isinstance(obj, nn.Module):
+        out |= {f"state.{k}": _plain(v) for k, v in obj.state_dict().items()}
+    for name, value in sorted(vars(obj).items()):
+        if name.startswith("_") or name in _NOT_IDENTITY:
+            continue
+        plain = _plain(value)
+        if plain is not None:
+            out[name] = plain
+    return out
 
 
 @dataclass
@@ -178,9 +254,22 @@ class ActivePolicyIteration:
             envs), the environments' rows of that trial. A batched run of T trials then gives
             the numbers of T runs with ``num_trials=1, trial_seeds=[s_t]``.
         keep_reward_free: store the selector's reward-free episodes in ``reward_free``.
-        checkpoint_path: if set, the whole state is saved there (atomically) right after each
-            batch of rewarded episodes is bought and after every iteration; resume with
-            :meth:`load` on an instance built with the same arguments.
+        checkpoint_path: if set, the run is stored there (:class:`~torch_api.store.RunStore`,
+            an SQLite database): each slice of rewarded episodes is committed (fsynced,
+            checksummed) before the next is measured, the selection before the rewards it
+            buys, every completed iteration's record (θ_l) after it. The place is opened, locked
+            against other writers and checked writable here, before anything is bought.
+        resume: continue the run stored at ``checkpoint_path`` (built with the same settings:
+            everything that gives the stored data its meaning must match, while ``lam``,
+            ``device``, ``reward_free_workers`` and ``evaluate`` may change). Only missing
+            rewarded episodes are bought, with the uninterrupted run's random streams. A
+            missing run starts fresh (``resumed`` is then False).
+        overwrite: discard a run stored at ``checkpoint_path``. Without ``resume`` or
+            ``overwrite`` an existing run is refused (``RunExistsError``), never replaced.
+        rewarded_slice: how rewarded episodes are bought and committed: ``"all"`` (a
+            simulator: all M_l rows of an iteration in one rollout, one commit) or
+            ``"episode"`` (a robot: one episode index at a time, each committed before the next
+            is measured, each with random streams of its own from (seed, l, m)).
         device: where psi_hat, J and the solves run (e.g. ``"cuda"``). The rollouts stay on
             the environments' device (the policies' θ follows the observations) and the
             episode buffers are held on the CPU. Default: CPU.
@@ -249,6 +338,9 @@ class ActivePolicyIteration:
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
         reward_free_workers: int = 0,
+        resume: bool = False,
+        overwrite: bool = False,
+        rewarded_slice: str = "all",
         fit: str = "brm",
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
@@ -261,23 +353,37 @@ class ActivePolicyIteration:
             raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
         if improvement == "softmax" and not (beta is not None and beta > 0):
             raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
-        schedule = [int(m) for m in schedule]
-        if not schedule or min(schedule) < 1:
+        if not schedule or not all(
+            isinstance(m, numbers.Integral)
+            and not isinstance(m, bool)
+            and m >= 1
+            or isinstance(m, float)
+            and m.is_integer()
+            and m >= 1
+            for m in schedule
+        ):
             raise ValueError(
-                f"schedule must be a non-empty list of episode counts >= 1, got {schedule}"
+                "schedule must be a non-empty list of integer episode counts >= 1, "
+                f"got {list(schedule)}"
             )
-        if num_steps < 1:
-            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        schedule = [int(m) for m in schedule]
+        num_steps = _count("num_steps", num_steps)
+        num_repeats = _count("num_repeats", num_repeats)
+        knn_k = _count("knn_k", knn_k)
+        reward_free_workers = _count("reward_free_workers", reward_free_workers, 0)
+        if num_trials is not None:
+            num_trials = _count("num_trials", num_trials)
         if not 0 < gamma <= 1:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
-        if not lam > 0:
-            raise ValueError(f"lam must be > 0, got {lam}")
+        _check_lambda(lam)
+        if rewarded_slice not in SLICES:
+            raise ValueError(f"rewarded_slice must be one of {SLICES}, got {rewarded_slice!r}")
+        if (resume or overwrite) and checkpoint_path is None:
+            raise ValueError("resume and overwrite need a checkpoint_path")
         if psi_mode not in PSI_MODES:
             raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
         if not candidate_offsets:
             raise ValueError("candidate_offsets must not be empty")
-        if num_trials is not None and num_trials < 1:
-            raise ValueError(f"num_trials must be >= 1, got {num_trials}")
         if collector is not None and (num_trials is not None or reward_free_workers):
             raise ValueError("collector works without num_trials and reward_free_workers")
         self.collector = collector
@@ -331,7 +437,9 @@ class ActivePolicyIteration:
                     f"initial_theta must have shape [{basis.num_features}] (the basis width), "
                     f"got {tuple(theta.shape)}"
                 )
+        self._initial_theta = theta
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
+        self.rewarded_slice = rewarded_slice
         self.iteration = 0  # iterations completed
         warm = _warm_start(initial_episodes, self.trial_dims)
         self.rewarded = EpisodeBuffer(  # per trial
@@ -339,6 +447,7 @@ class ActivePolicyIteration:
         )
         if warm is not None:
             self.rewarded.extend(warm)
+        self._warm = warm
         self._action_encoding = None  # the env's action encoding, read from its first instance
         if isinstance(env, EnvBase):
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
@@ -351,6 +460,8 @@ class ActivePolicyIteration:
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
         self._pending: dict | None = None  # an iteration whose rewards are bought, θ not yet fit
+        self._selection: dict | None = None  # the coming iteration's chosen sampling policy
+        self._partial: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
         self.selector = SamplingPolicySelector(
             env=reward_free_env if reward_free_env is not None else self._env_for,
             psi=self.psi,
@@ -365,6 +476,19 @@ class ActivePolicyIteration:
             collector=collector,
         )
         self.policy = self._policy(self.theta, 1)
+        self.store: RunStore | None = None
+        self.resumed = False
+        if checkpoint_path is not None:
+            self.store = RunStore(
+                self.checkpoint_path, config=self._config(), resume=resume, overwrite=overwrite
+            )
+            if not self.store.started_fresh:
+                try:
+                    self._restore(self.store.stored)
+                except BaseException:
+                    self._close_store()
+                    raise
+                self.resumed = True
 
     @property
     def rewarded_transitions(self) -> int:
@@ -389,6 +513,10 @@ class ActivePolicyIteration:
             action_spec=self._action_encoding,
             **rule,
         )
+
+    def initial_policy(self) -> LinearQPolicy:
+        """pi_1, the policy of θ_0, whatever the run's progress (e.g. after a resume)."""
+        return self._policy(self._initial_theta.expand_as(self.theta).clone(), 1)
 
     def _candidate_rules(self) -> torch.Tensor:
         """ε (or β) of the K candidates of the coming iteration (eq. 59); the first is pi_l's."""
@@ -459,20 +587,42 @@ class ActivePolicyIteration:
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
             self.policy = self.policy.with_action_spec(self._action_encoding)
+            self.selector.action_encoding = self._action_encoding
         seed_env(env, *self._env_seeds(iteration, "rewarded_env"))
         if self.mode == "active":
             batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
             self.selector.seed_env(batch, *self._env_seeds(iteration, "reward_free_env"))
 
     def _buy(self) -> None:
-        """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes."""
-        started = time.perf_counter()
+        """Steps 1-2 of Algorithm 1: choose the sampling policy, buy and store its episodes.
+
+        The selection is committed first, then each slice of rewarded episodes (all M_l rows,
+        or one episode index at a time with ``rewarded_slice="episode"``) before the next is
+        measured. Episodes already stored (a resumed run) are not bought again.
+        """
         l_now = self.iteration + 1
         num_episodes = self.schedule[self.iteration]
+        one_slice = self.rewarded_slice == "all" and self._selection is None
+        if self._selection is None:
+            self._select(l_now, num_episodes)
+        missing = [m for m in range(num_episodes) if m not in self._partial]
+        # A simulator buys all rows in one rollout continuing the iteration's streams; single
+        # episodes (a robot, or episodes left to buy after a resume) have streams of their own.
+        slices = [missing] if one_slice else [[m] for m in missing]
+        for episodes in slices:
+            self._buy_slice(l_now, episodes, reseed=not one_slice)
+        bought = [self._partial[m] for m in range(num_episodes)]
+        self.rewarded.extend(torch.stack(bought, dim=len(self.trial_dims)))
+        self._pending, self._selection, self._partial = self._selection, None, {}
+
+    def _select(self, l_now: int, num_episodes: int) -> None:
+        """Step 1: seed iteration l, choose the sampling policy (J'), commit the choice."""
+        started = time.perf_counter()
         self._seed_iteration(l_now, num_episodes)
         rules = self._candidate_rules()
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
-        j_mean = j_all = None
+        j_mean = j_all = free = None
+        reward_free_transitions = 0
         if self.mode == "active":
             self.selector.num_episodes = num_episodes
             earlier = self.rewarded.episodes() if len(self.rewarded) else None
@@ -481,42 +631,107 @@ class ActivePolicyIteration:
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
-            self._reward_free_transitions += selection.reward_free_transitions
+            reward_free_transitions = selection.reward_free_transitions
             if self.keep_reward_free:
-                free = selection.episodes
-                self.reward_free.extend(free.reshape(*self.trial_dims, -1, self.num_steps))
+                free = selection.episodes.reshape(*self.trial_dims, -1, self.num_steps)
+        self._selection = {
+            "chosen": chosen,
+            "sampling_rule": rules[chosen],
+            "j_mean": j_mean,
+            "j_all": j_all,
+            "reward_free_transitions": reward_free_transitions,
+            "seconds": time.perf_counter() - started,
+        }
+        self._partial = {}
+        if self.store is not None:
+            self.store.put_selection(l_now, self._selection_row(self._selection), free)
+            self._on_commit()
+        self._reward_free_transitions += reward_free_transitions
+        if free is not None:
+            self.reward_free.extend(free)
+
+    @staticmethod
+    def _selection_row(selection: dict) -> dict:
+        return {k: v.tolist() if isinstance(v, torch.Tensor) else v for k, v in selection.items()}
+
+    def _seed_slice(self, l_now: int, episode: int, rows: int) -> None:
+        """Re-seed the policy stream and the rewarded env for episode m of iteration l."""
+        self.generator.manual_seed(slice_seed(self.seed, l_now, episode, "policy"))
+        if self.trial_seeds is not None:
+            self.policy.block_generators = [
+                torch.Generator().manual_seed(slice_seed(s, l_now, episode, "policy"))
+                for s in self.trial_seeds
+            ]
+        blocks = None
+        if self.trial_seeds is not None:
+            blocks = [slice_seed(s, l_now, episode, "rewarded_env") for s in self.trial_seeds]
+        seed = slice_seed(self.seed, l_now, episode, "rewarded_env")
+        seed_env(self._env_for(rows), seed, blocks)
+
+    def _buy_slice(self, l_now: int, episodes: list[int], *, reseed: bool) -> None:
+        """Buy episodes ``episodes`` (indices m) of iteration l and commit them.
+
+        An episode with a bad reward (NaN, inf) is reported by index; the valid episodes of
+        the slice are committed first.
+        """
+        trials = math.prod(self.trial_dims)
+        rows = trials * len(episodes)
+        if reseed:
+            self._seed_slice(l_now, episodes[0], rows)
+        selection = self._selection
+        chosen = selection["chosen"]
+        where = f" (stored in {self.checkpoint_path})" if self.checkpoint_path else ""
         try:
             bought = self._collect(
-                self._env_for(math.prod(self.trial_dims) * num_episodes),
-                self._with_rule(rules[chosen]),  # one candidate per trial
-                num_episodes=num_episodes,
+                self._env_for(rows),
+                self._with_rule(selection["sampling_rule"]),  # one candidate per trial
+                num_episodes=len(episodes),
                 num_steps=self.num_steps,
                 rewarded=True,
                 iteration=l_now,
                 policy_id=chosen,
+                validate=False,
             )
         except Exception as error:
-            where = f" (checkpoint {self.checkpoint_path})" if self.checkpoint_path else ""
             raise RuntimeError(
                 f"collecting the rewarded episodes of iteration {l_now} failed: "
                 f"{type(error).__name__}: {error}. The {len(self.rewarded)} episodes bought "
                 f"before (per trial) are kept in api.rewarded{where}; none of this batch was "
                 "stored"
             ) from error
-        self.rewarded.extend(bought)
-        self._pending = {
-            "chosen": chosen,
-            "sampling_rule": rules[chosen],
-            "j_mean": j_mean,
-            "j_all": j_all,
-            "seconds": time.perf_counter() - started,
-        }
-        self._checkpoint()
+        good, bad = {}, []
+        for i, m in enumerate(episodes):
+            one = bought[..., i : i + 1, :]
+            try:
+                validate_episodes(one, rewarded=True)
+            except ValueError as error:
+                bad.append(f"episode {m}{self._trial_of_bad(one)}: {error}")
+            else:
+                good[m] = one.squeeze(-2)
+        if self.store is not None and good:
+            self.store.put_episodes(l_now, good)
+            self._on_commit()
+        self._partial.update(good)
+        if bad:
+            raise ValueError(
+                f"iteration {l_now}: {'; '.join(bad)}. The {len(good)} valid episodes of this "
+                f"slice are kept{where}; a resume buys the others again"
+            )
+
+    def _trial_of_bad(self, one: TensorDict) -> str:
+        """`` of trial t`` for the first trial whose episode fails the checks (trials only)."""
+        for t in range(math.prod(self.trial_dims)) if self.trial_dims else ():
+            try:
+                validate_episodes(one.reshape(-1, *one.shape[-2:])[t : t + 1], rewarded=True)
+            except ValueError:
+                return f" of trial {t}"
+        return ""
 
     def _collect(self, env: EnvBase, policy, **kwargs):
         """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
         if self.collector is None:
             return collect_episodes(env, policy, **kwargs)
+        kwargs.pop("validate", None)  # (the collector's episodes are checked as they come)
         return collect_with_collector(self.collector, policy, **kwargs)
 
     def step(self) -> IterationRecord:
@@ -525,6 +740,8 @@ class ActivePolicyIteration:
             raise RuntimeError(f"all {len(self.schedule)} iterations of the schedule are done")
         if self._pending is None:  # (after a resume, the rewards may be bought already)
             self._buy()
+        elif self.store is not None and self.store.closed:
+            raise RuntimeError(f"the run's store {self.checkpoint_path} is closed")
         started = time.perf_counter()
         l_now = self.iteration + 1
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
@@ -558,9 +775,11 @@ class ActivePolicyIteration:
             seconds=seconds,
             theta=self.theta.tolist(),
         )
+        if self.store is not None:
+            self.store.put_record(l_now, asdict(record))
+            self._on_commit()
         self.iteration = l_now
         self.history.append(record)
-        self._checkpoint()
         _log.info(
             "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
             self.mode,
@@ -569,104 +788,169 @@ class ActivePolicyIteration:
             seconds,
             self.rewarded_transitions,
         )
+        if self.iteration == len(self.schedule):
+            self._close_store()
         return record
 
     # -- durable state -----------------------------------------------------------------------
 
     def _config(self) -> dict:
-        """What a checkpoint must agree on to be resumed by this instance."""
-        return {
+        """What gives stored data its meaning: a resume must agree on all of it.
+
+        λ, the device, the worker processes and the evaluation callback are left out: they may
+        change on resume (a fit that failed for a bad λ can be redone with a better one).
+        """
+        last = len(self.schedule) + 1
+        trials = math.prod(self.trial_dims)
+        config = {
             "schedule": self.schedule,
             "num_steps": self.num_steps,
             "gamma": self.gamma,
             "mode": self.mode,
-            "lam": self.lam,
             "num_repeats": self.num_repeats,
             "num_trials": self.num_trials,
             "seed": self.seed,
             "trial_seeds": self.trial_seeds,
             "psi_mode": self.psi.mode,
+            "knn_k": self.psi.k,
             "improvement": self.improvement,
+            "beta": self.beta,
             "tie_break": self.tie_break,
+            "candidate_offsets": list(self.candidate_offsets),
+            "epsilons": None
+            if self.improvement == "softmax"
+            else [self.epsilon_schedule(l) for l in range(1, last + 1)],
+            "initial_theta": self._initial_theta.tolist(),
+            "basis": fingerprint(self.basis),
+            "env": fingerprint(self._env_for(trials * self.schedule[0])),
+            "keep_reward_free": self.keep_reward_free,
+            "rewarded_slice": self.rewarded_slice,
+            "initial_episodes": None
+            if self._warm is None
+            else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
             "fit": self.fit,
-            "num_features": self.basis.num_features,
         }
+        return config
 
-    def state_dict(self) -> dict:
-        """Everything needed to continue the run: plain tensors, numbers and strings only."""
+    def _on_commit(self) -> None:
+        """Called after every commit to the store (a hook for tests and testing aids)."""
+
+    def _restore(self, stored: StoredRun, path: Path | None = None) -> None:
+        """Rebuild the run's state from a verified store; nothing is changed if it fails.
+
+        Raises:
+            CorruptRunError: the stored rows do not form a run of this schedule.
+        """
+        path = path or self.checkpoint_path
+        done = len(stored.records)
+        if sorted(stored.records) != list(range(1, done + 1)) or done > len(self.schedule):
+            raise CorruptRunError(f"the run {path} holds records {sorted(stored.records)}")
+        rewarded = EpisodeBuffer(rewarded=True, capacity=self.rewarded.capacity)
+        if self._warm is not None:  # the warm start comes first, as in a fresh run
+            rewarded.extend(self._warm)
+        reward_free = EpisodeBuffer(rewarded=False, capacity=self.reward_free.capacity)
+        free_transitions = 0
+        selection, partial = None, {}
+        nxt = done + 1
+        if nxt <= len(self.schedule) and nxt in stored.selections:
+            if stored.episodes.get(nxt) or self.rewarded_slice == "episode":
+                selection = dict(stored.selections[nxt])
+                partial = dict(stored.episodes.get(nxt, {}))
+        try:
+            for l_now in range(1, done + 1 + (selection is not None)):
+                row = stored.selections.get(l_now)
+                if row is None:
+                    raise CorruptRunError(
+                        f"the run {path} lacks the selection of iteration {l_now}"
+                    )
+                free_transitions += int(row["reward_free_transitions"])
+                if self.keep_reward_free and l_now in stored.free:
+                    reward_free.extend(stored.free[l_now])
+            for l_now in range(1, done + 1):
+                got = stored.episodes.get(l_now, {})
+                if sorted(got) != list(range(self.schedule[l_now - 1])):
+                    raise CorruptRunError(
+                        f"the run {path} holds episodes {sorted(got)} of iteration {l_now}, "
+                        f"which bought {self.schedule[l_now - 1]}"
+                    )
+                rewarded.extend(torch.stack([got[m] for m in sorted(got)], len(self.trial_dims)))
+            for m, episode in partial.items():
+                if not 0 <= m < self.schedule[nxt - 1]:
+                    raise CorruptRunError(f"the run {path} holds episode {m} of iteration {nxt}")
+                validate_episodes(episode.unsqueeze(-2), rewarded=True)
+            history = [IterationRecord(**r) for _, r in sorted(stored.records.items())]
+            theta = self.theta
+            if history:
+                theta = torch.tensor(history[-1].theta, dtype=torch.float64)
+                if theta.shape != self.theta.shape:
+                    raise CorruptRunError(f"the run {path} holds θ of shape {tuple(theta.shape)}")
+        except (ValueError, TypeError, KeyError, RuntimeError) as error:
+            if isinstance(error, CorruptRunError):
+                raise
+            raise CorruptRunError(f"the run {path} cannot be restored: {error}") from None
+        if selection is not None:
+            selection["chosen"] = torch.tensor(selection["chosen"], dtype=torch.long)
+            selection["sampling_rule"] = torch.tensor(
+                selection["sampling_rule"], dtype=torch.float64
+            )
         pending = None
-        if self._pending is not None:
-            pending = dict(self._pending)
-            pending["j_mean"] = json.dumps(pending["j_mean"])
-            pending["j_all"] = json.dumps(pending["j_all"])
-        return {
-            "format": CHECKPOINT_FORMAT,
-            "config": json.dumps(self._config()),
-            "iteration": self.iteration,
-            "theta": self.theta,
-            "rewarded": self.rewarded.state_dict(),
-            "reward_free": self.reward_free.state_dict(),
-            "reward_free_transitions": self._reward_free_transitions,
-            "history": json.dumps([asdict(r) for r in self.history]),
-            "pending": pending,
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict` output; refuses a checkpoint of another configuration."""
-        if state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(
-                f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT} "
-                "(written by another version of torch_api?)"
-            )
-        theirs = json.loads(state["config"])
-        if theirs != self._config():
-            differ = sorted(
-                k
-                for k in theirs.keys() | self._config().keys()
-                if theirs.get(k) != self._config().get(k)
-            )
-            raise ValueError(f"the checkpoint was written by a run with other settings: {differ}")
-        self.rewarded.load_state_dict(state["rewarded"])
-        self.reward_free.load_state_dict(state["reward_free"])
-        self.iteration = int(state["iteration"])
-        self.theta = state["theta"].to(torch.float64)
-        self._reward_free_transitions = int(state["reward_free_transitions"])
-        self.history = [IterationRecord(**r) for r in json.loads(state["history"])]
-        pending = state["pending"]
-        if pending is not None:
-            pending = dict(pending)
-            pending["j_mean"] = json.loads(pending["j_mean"])
-            pending["j_all"] = json.loads(pending["j_all"])
-        self._pending = pending
+        if selection is not None and len(partial) == self.schedule[nxt - 1]:
+            last = [partial[m] for m in sorted(partial)]
+            rewarded.extend(torch.stack(last, len(self.trial_dims)))
+            pending, selection, partial = selection, None, {}
+        # everything checked: now change the object
+        self.rewarded, self.reward_free = rewarded, reward_free
+        self._reward_free_transitions = free_transitions
+        self.history, self.iteration, self.theta = history, done, theta
+        self._pending, self._selection, self._partial = pending, selection, partial
         self.policy = self._policy(self.theta, self.iteration + 1)
 
-    def save(self, path: str | os.PathLike) -> None:
-        """Write :meth:`state_dict` to ``path`` atomically (temporary file, then rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state_dict(), tmp)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-
     def load(self, path: str | os.PathLike) -> None:
-        """Resume from a checkpoint written by :meth:`save` (never executes code from it)."""
-        try:
-            state = torch.load(Path(path), weights_only=True)
-        except Exception as error:  # truncated, corrupted or holding pickled objects
-            raise ValueError(f"cannot read the checkpoint {path}: {error}") from error
-        self.load_state_dict(state)
+        """Take over the state of the run stored at ``path`` (read only; for inspection or a
+        copy: to continue a run, build it with ``checkpoint_path=path, resume=True``).
 
-    def _checkpoint(self) -> None:
-        if self.checkpoint_path is not None:
-            self.save(self.checkpoint_path)
+        Raises:
+            CorruptRunError: the file fails a check, or was made with other settings; the
+                object is then left as it was.
+        """
+        stored = RunStore.read(path)
+        mine = RunStore.normalise(self._config())
+        if stored.config != mine:
+            differ = sorted(
+                k for k in stored.config.keys() | mine.keys() if stored.config.get(k) != mine.get(k)
+            )
+            raise CorruptRunError(
+                f"the run stored in {path} was made with other settings: {differ}"
+            )
+        self._restore(stored, Path(path))
+
+    def _close_store(self) -> None:
+        """Close the run's store (its lock is released); the object keeps its state."""
+        if self.store is not None:
+            self.store.close()
+
+    def close(self) -> None:
+        """Close the run's store (releasing its lock) and the envs built from env factories
+        (rewarded and reward-free), e.g. the worker processes of ``env=lambda rows:
+        ParallelEnv(rows, make_env)``; envs given as such are the caller's to close. The
+        object keeps its state: envs are built again if it goes on, a store is not."""
+        self._close_store()
+        self._env_for.close()
+        self.selector.close()
+
+    def __enter__(self) -> ActivePolicyIteration:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def run(self, *, progress: bool = False) -> list[IterationRecord]:
         """Run the remaining iterations; returns the whole history."""
         remaining = range(self.iteration, len(self.schedule))
         for _ in tqdm(remaining, desc=f"API ({self.mode})", disable=not progress):
             self.step()
+        if self.iteration == len(self.schedule):
+            self._close_store()  # (a resumed run that was complete already)
         return self.history
 
 

@@ -26,7 +26,14 @@ from torch_api.solve import weighted_moment
 
 __all__ = ["lstd_j_from_moments", "lstd_j_values", "phi_rows", "weighted_lstd"]
 
-_KEYS = ("observation", "action", "sample_probs", ("next", "observation"), ("next", "terminated"))
+_KEYS = (
+    "observation",
+    "action",
+    "sample_probs",
+    "sample_log_prob",  # (a TorchRL actor's log-probability of its action, torch_api.data)
+    ("next", "observation"),
+    ("next", "terminated"),
+)
 
 
 def phi_rows(episodes: TensorDictBase, basis) -> torch.Tensor:
@@ -145,7 +152,8 @@ def lstd_j_values(
     a_sh = c_sh = u_sh = a_own.new_zeros(a_own.shape[-2:])
     n_sh = n_own.new_zeros(())
     if earlier_episodes is not None and earlier_episodes.shape[-2] > 0:
-        prev = earlier_episodes.select(*keys, "mask")
+        prev_keys = [k for k in _KEYS if k in earlier_episodes.keys(include_nested=True)]
+        prev = earlier_episodes.select(*prev_keys, "mask")
         a_sh, c_sh, u_sh, n_sh = moments(prev)  # [*T, B, B], [*T]
         stretch = [1] * (len(lead) - (prev.batch_dims - 2))  # the repeat dims prev lacks
         a_sh, c_sh, u_sh = (

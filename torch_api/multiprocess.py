@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable, Sequence
 
 import torch
@@ -30,7 +31,9 @@ from torchrl.collectors import MultiSyncCollector
 from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
+from torch_api.actions import ActionEncoding
 from torch_api.data import _episodes_from_rollout, seed_env, validate_episodes
+from torch_api.lifetime import die_with_parent
 
 __all__ = ["collect_episodes_in_workers"]
 
@@ -52,9 +55,12 @@ class _WorkerPolicy:
             policy.generator = torch.Generator().manual_seed(self.seed)
         # Declaring the outputs spares the collector a probing call of the policy at start-up,
         # which would draw from the streams and shift every action by one step.
-        action = (
-            OneHot(n=policy.num_actions) if policy.one_hot else Categorical(n=policy.num_actions)
-        )
+        encoding = policy.action_encoding  # the env's, set by collect_episodes_in_workers
+        if encoding.one_hot:
+            action = OneHot(n=policy.num_actions, dtype=encoding.dtype)
+        else:
+            shape = (1,) if encoding.trailing_dim else ()
+            action = Categorical(n=policy.num_actions, shape=shape, dtype=encoding.dtype)
         policy.spec = Composite(
             {
                 policy.action_key: action,
@@ -69,8 +75,10 @@ class _WorkerEnv:
 
     def __init__(self, make_env, rows: int, seed: int, block_seeds: Sequence[int] | None):
         self.make_env, self.rows, self.seed, self.block_seeds = make_env, rows, seed, block_seeds
+        self.parent = os.getpid()  # (the worker dies with this process)
 
     def __call__(self) -> EnvBase:
+        die_with_parent(self.parent)  # (called in the worker process)
         env = self.make_env(self.rows)
         seed_env(env, self.seed, self.block_seeds)
         return env
@@ -96,6 +104,7 @@ def collect_episodes_in_workers(
     env_seed: int = 0,
     env_block_seeds: Sequence[int] | None = None,
     iteration: int = 0,
+    action_spec=None,
 ) -> TensorDict:
     """:func:`~torch_api.data.collect_episodes` with the rows spread over worker processes.
 
@@ -115,6 +124,9 @@ def collect_episodes_in_workers(
         env_block_seeds: one seed per block for envs with ``set_block_seeds`` (worker w gets
             its blocks' seeds).
         iteration: tag stored with every step.
+        action_spec: the env's action spec or :class:`~torch_api.actions.ActionEncoding`; the
+            policy writes actions in its encoding (default: read from one env of
+            ``make_env(1)``, built here for that).
 
     Returns:
         TensorDict ``[*T, M, N]`` as ``collect_episodes`` returns.
@@ -123,6 +135,12 @@ def collect_episodes_in_workers(
         raise ValueError(f"num_workers must be >= 1, got {num_workers}")
     trial_dims = tuple(getattr(policy, "param_dims", ()))
     rows = math.prod(trial_dims) * num_episodes
+    if action_spec is None:  # the workers' env encodes actions as one env of its kind does
+        probe = make_env(1)
+        action_spec = ActionEncoding.from_spec(probe.action_spec, tuple(probe.batch_size))
+        if not getattr(probe, "is_closed", False):  # (a batched env not started is closed)
+            probe.close()
+    policy = policy.with_action_spec(action_spec)
     if blocks is None:
         blocks = math.prod(trial_dims) if trial_dims else rows
     if blocks < 1 or rows % blocks:

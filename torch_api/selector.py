@@ -312,7 +312,12 @@ class SamplingPolicySelector:
         if collector is not None and num_workers:
             raise ValueError("give either collector or num_workers, not both")
         self.collector = collector
+        self.action_encoding = None  # the env's action encoding, where known (else probed)
         self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
+
+    def close(self) -> None:
+        """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""
+        self._envs.close()
 
     def env_for(self, batch: int) -> EnvBase:
         """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
@@ -348,6 +353,7 @@ class SamplingPolicySelector:
             episodes = collect_episodes_in_workers(
                 self._envs.env,
                 stack,
+                action_spec=self.action_encoding,
                 num_episodes=trials * z * k * m,
                 num_steps=n,
                 rewarded=False,
