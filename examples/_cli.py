@@ -13,8 +13,9 @@ under a second (``tests/test_cli.py`` measures it).
 
 The same flag means the same thing in every script: ``--trials`` (independent trials, >= 1),
 ``--seed`` (the master seed), ``--out-dir`` (created if needed; checked writable, with room,
-before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue from the
-checkpoints in ``--out-dir``), ``--backend`` (where chunks of trials run). A script that cannot
+before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue the
+runs stored in ``--out-dir``; ``--overwrite`` discards them, and without either a folder that
+holds runs is refused), ``--backend`` (where chunks of trials run). A script that cannot
 honour one of them declares it in ``unavailable``: the flag is refused with the reason, never
 silently ignored.
 
