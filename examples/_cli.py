@@ -29,13 +29,14 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import inspect
 import os
 import re
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -303,8 +304,10 @@ class Interrupted(BaseException):
         self.signum = signum
 
 
-def raise_on_signals() -> None:
-    """Turn SIGINT and SIGTERM into :class:`Interrupted` in the main thread.
+@contextlib.contextmanager
+def raise_on_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM raise :class:`Interrupted` in the main thread; the
+    handlers before it are restored after it.
 
     The run's store holds both back while it commits, so the exception arrives between
     commits: the write in flight always completes.
@@ -314,8 +317,12 @@ def raise_on_signals() -> None:
     def handler(signum, frame):
         raise Interrupted(signum)
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
+    before = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in before.items():
+            signal.signal(sig, old)
 
 
 def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:
