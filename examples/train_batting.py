@@ -646,9 +646,9 @@ def main(argv=None) -> dict:
     ]
     if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
         raise SystemExit(f"error: {why}")
-    raise_on_signals()
     try:
-        return run_all(args, out, ckpt_dir, names, jobs, pieces)
+        with raise_on_signals():
+            return run_all(args, out, ckpt_dir, names, jobs, pieces)
     except Interrupted as interrupt:
         exit_interrupted(interrupt.signum, stores, ckpt_dir)
     except StoreError as error:
