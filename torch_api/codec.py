@@ -41,8 +41,8 @@ def encode_tensordict(td: TensorDictBase) -> bytes:
 
     Example:
         >>> td = TensorDict({"a": torch.arange(3), ("n", "b"): torch.ones(3, 2)}, [3])
-        >>> (decode_tensordict(encode_tensordict(td)) == td).all()
-        tensor(True)
+        >>> bool((decode_tensordict(encode_tensordict(td)) == td).all())
+        True
     """
     leaves, chunks, offset = [], [], 0
     for key in sorted(td.keys(include_nested=True, leaves_only=True), key=str):
