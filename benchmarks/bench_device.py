@@ -120,7 +120,7 @@ def figure8(args: Args, tmp: Path) -> list[dict]:
         payload = chain_walk_api.main(
             [
                 *("--trials", str(trials), "--iterations", str(iterations), "--device", device),
-                *("--out-dir", str(tmp / f"fig8_{device}")),
+                *("--out-dir", str(tmp / f"fig8_{device}"), "--overwrite"),
             ]
         )
         runs = [run for res in payload["results"].values() for run in res["runs"].values()]
@@ -138,7 +138,7 @@ def batting(args: Args, tmp: Path) -> list[dict]:
         payload = train_batting.main(
             [
                 *("--trials", str(trials), "--iterations", str(iterations), "--device", device),
-                *("--out-dir", str(tmp / f"batting_{device}")),
+                *("--out-dir", str(tmp / f"batting_{device}"), "--overwrite"),
                 *(("--episodes", "2", "--repeats", "2") if args.quick else ()),
             ]
         )

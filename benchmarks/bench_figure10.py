@@ -47,6 +47,7 @@ def run_config(config: str, args: argparse.Namespace) -> dict:
         str(out_dir),
         "--physics-audit",
         str(args.audit),
+        "--overwrite",  # a benchmark times fresh runs, never a resumed one
     ]
     if config == "processes":
         chunks = min(args.trials, args.chunks or args.workers)

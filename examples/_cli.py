@@ -13,8 +13,9 @@ under a second (``tests/test_cli.py`` measures it).
 
 The same flag means the same thing in every script: ``--trials`` (independent trials, >= 1),
 ``--seed`` (the master seed), ``--out-dir`` (created if needed; checked writable, with room,
-before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue from the
-checkpoints in ``--out-dir``), ``--backend`` (where chunks of trials run). A script that cannot
+before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue the
+runs stored in ``--out-dir``; ``--overwrite`` discards them, and without either a folder that
+holds runs is refused), ``--backend`` (where chunks of trials run). A script that cannot
 honour one of them declares it in ``unavailable``: the flag is refused with the reason, never
 silently ignored.
 
@@ -28,13 +29,14 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import inspect
 import os
 import re
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -302,8 +304,10 @@ class Interrupted(BaseException):
         self.signum = signum
 
 
-def raise_on_signals() -> None:
-    """Turn SIGINT and SIGTERM into :class:`Interrupted` in the main thread.
+@contextlib.contextmanager
+def raise_on_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM raise :class:`Interrupted` in the main thread; the
+    handlers before it are restored after it.
 
     The run's store holds both back while it commits, so the exception arrives between
     commits: the write in flight always completes.
@@ -313,8 +317,12 @@ def raise_on_signals() -> None:
     def handler(signum, frame):
         raise Interrupted(signum)
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
+    before = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in before.items():
+            signal.signal(sig, old)
 
 
 def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:

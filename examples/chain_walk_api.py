@@ -477,9 +477,9 @@ def main(argv=None) -> dict:
     ]
     if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
         raise SystemExit(f"error: {why}")
-    raise_on_signals()
     try:
-        return run_all(args, out, names, jobs)
+        with raise_on_signals():
+            return run_all(args, out, names, jobs)
     except Interrupted as interrupt:
         exit_interrupted(interrupt.signum, stores, out / "checkpoints")
     except StoreError as error:

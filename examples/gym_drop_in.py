@@ -376,9 +376,9 @@ def main(argv=None) -> dict:
     stores = [store_of(args, mode) for mode in METHODS.values()]
     if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
         raise SystemExit(f"error: {why}")
-    raise_on_signals()
     try:
-        return run_all(args, out)
+        with raise_on_signals():
+            return run_all(args, out)
     except Interrupted as interrupt:
         exit_interrupted(interrupt.signum, stores, out / "checkpoints")
     except StoreError as error:

@@ -29,8 +29,10 @@ AL − PL per iteration.
 The paper's full experiment (500 trials, both schedules): most of its time is MuJoCo rollouts
 (per trial and schedule: 980 reward-free, 49 rewarded and 140 test episodes for AL). Chunks of
 about 16 trials in one worker process per core (``--backend processes``) overlap one process's
-physics with another's algebra and keep each batch in cache; it took 1085 s (18.1 min) on 2 cores
-(``benchmarks/bench_figure10.py`` measures it against its physics floor):
+physics with another's algebra and keep each batch in cache; it took 1085 s (18.1 min) on 2 idle
+cores with ``--tie-break lowest`` (``benchmarks/bench_figure10.py`` measures it against its
+physics floor); with ties split evenly pi_1 hits the ball in half of its episodes, so more impacts
+are resolved finely and it takes longer (README, "The ball-batting robot"):
 
     python examples/train_batting.py --trials 500 --schedule both --backend processes --chunks 32
 
@@ -644,9 +646,9 @@ def main(argv=None) -> dict:
     ]
     if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
         raise SystemExit(f"error: {why}")
-    raise_on_signals()
     try:
-        return run_all(args, out, ckpt_dir, names, jobs, pieces)
+        with raise_on_signals():
+            return run_all(args, out, ckpt_dir, names, jobs, pieces)
     except Interrupted as interrupt:
         exit_interrupted(interrupt.signum, stores, ckpt_dir)
     except StoreError as error:

@@ -4,6 +4,7 @@ silently, and bad files, bad places and other settings are refused with the path
 import math
 import os
 import pickle
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -260,19 +261,47 @@ def test_an_unwritable_place_is_refused_before_anything_is_bought(tmp_path, plac
     assert _CountingChain.measured == 0
 
 
+_READ_ONLY_CHECK = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_checkpoint import _CountingChain, _api
+from torch_api.store import StoreWriteError
+try:
+    _api({path!r}, env=_CountingChain)
+except StoreWriteError as error:
+    print("REFUSED", _CountingChain.measured, error)
+"""
+
+
 def test_a_read_only_directory_is_refused_before_anything_is_bought(tmp_path):
+    """chmod 0o500 for an ordinary user; for root (who may write there anyway) a read-only bind
+    mount in a private mount namespace (``unshare -m``), gone with the process."""
     ro = tmp_path / "ro"
     ro.mkdir()
     os.chmod(ro, 0o500)
+    script = _READ_ONLY_CHECK.format(tests=str(ROOT / "tests"), path=str(ro / "run.db"))
+    command = [sys.executable, "-c", script]
+    if os.access(ro, os.W_OK):  # root
+        if shutil.which("unshare") is None:
+            pytest.skip("root without unshare: no way to make a folder read-only here")
+        mount = f'mount --bind -o ro {ro} {ro} && exec {sys.executable} -c "$0"'
+        command = ["unshare", "-m", "sh", "-c", mount, script]
     try:
-        if os.access(ro, os.W_OK):
-            pytest.skip("running as root: a read-only directory is writable (disk full below)")
-        _CountingChain.measured = 0
-        with pytest.raises(StoreWriteError, match=f"cannot write the run {ro}"):
-            _api(ro / "run.db", env=_CountingChain)
-        assert _CountingChain.measured == 0 and os.listdir(ro) == []
+        done = subprocess.run(
+            command,
+            capture_output=True,
+            text=True,
+            env=dict(os.environ, PYTHONPATH=str(ROOT)),
+            timeout=300,
+        )
     finally:
         os.chmod(ro, 0o700)
+    if "mount" in done.stderr and "REFUSED" not in done.stdout:
+        pytest.skip(f"no read-only bind mount here: {done.stderr.strip()[-200:]}")
+    line = [x for x in done.stdout.splitlines() if x.startswith("REFUSED")]
+    assert line, done.stdout[-2000:] + done.stderr[-2000:]
+    assert line[0].startswith(f"REFUSED 0 cannot write the run {ro / 'run.db'}")
+    assert os.listdir(ro) == []
 
 
 def test_a_full_disk_is_one_clear_line_and_keeps_what_was_stored(tmp_path):

@@ -33,8 +33,8 @@ KILLS = {"all": 14, "episode": 8}  # event kills per mode (events per run: ~115 
 EVENTS = {"all": 115, "episode": 160}
 TIMED_KILLS = 2  # per mode: SIGKILL from outside at a random moment
 AIMED = [  # first kills of each mode: at these points for sure, then at random events
+    "inside_a_transaction@4",  # a fresh run: the 1st row of the 1st slice written, no commit
     "after_put_episodes@1",  # rewards of iteration 1 bought and stored, θ_1 not fitted
-    "inside_a_transaction@4",  # between the rows of a slice and its commit
     "rewarded_step@5",  # in the middle of a rewarded slice
     "after_put_episodes@1",  # (in the resumed run: the next slice stored, not fitted)
 ]

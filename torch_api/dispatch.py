@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import socket
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -84,6 +85,9 @@ def threads_per_worker(workers: int) -> int:
 
 def _init_worker(threads: int, parent: int) -> None:
     die_with_parent(parent)
+    # Ctrl-C reaches the whole process group: the parent alone handles it (and ends the
+    # workers), so a worker does not print a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
 
 
