@@ -313,21 +313,12 @@ class CheckpointCounter:
         self.limit = limit
         self.written = 0
 
-    def saved(self) -> None:
+    def saved(self, api: ActivePolicyIteration | None = None) -> None:
+        """Count one commit (the run's ``on_checkpoint`` hook)."""
         self.written += 1
         if self.limit and self.written >= self.limit:
             print(f"\n[testing aid] stopping abruptly after {self.written} checkpoints", flush=True)
             os._exit(3)
-
-
-class InterruptibleRun(ActivePolicyIteration):
-    """ActivePolicyIteration that reports every commit to its store to a counter."""
-
-    counter: CheckpointCounter | None = None
-
-    def _on_commit(self) -> None:
-        if self.counter is not None:
-            self.counter.saved()
 
 
 @dataclass
@@ -357,7 +348,7 @@ def chunk_seed(seed: int, first_trial: int) -> int:
     return int(np.random.SeedSequence([seed, first_trial]).generate_state(1, np.uint64)[0] >> 1)
 
 
-def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRun:
+def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> ActivePolicyIteration:
     """One ActivePolicyIteration run of the chunk's trials, checkpointed to ``chunk.checkpoint``.
 
     Trial t's seed is ``derive_seed(seed, t, "trial")`` in every chunking. The run's own seed
@@ -380,7 +371,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
 
     first = chunk.trials[0]
     seed = args.seed if first == 0 else chunk_seed(args.seed, first)
-    api = InterruptibleRun(
+    return ActivePolicyIteration(
         env=env,
         reward_free_env=env,
         basis=make_basis(parse_widths(args.basis_widths)),
@@ -402,9 +393,8 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
         resume=args.resume,
         overwrite=args.overwrite,
         device=args.device,
+        on_checkpoint=chunk.counter.saved,  # counts commits (--stop-after-checkpoints)
     )
-    api.counter = chunk.counter
-    return api
 
 
 def run_chunk(chunk: Chunk) -> dict:
