@@ -1,11 +1,12 @@
 """The physics floor of a batting run: bare MuJoCo replaying the run's own physics steps.
 
-A run's environments count their physics steps, and sample some of their rollout calls, into an
-:class:`envs.batting.PhysicsAudit` (start state, torques, number of steps). Replaying the
-sampled rollouts with nothing around them, and scaling by the counted steps, estimates how long
-bare MuJoCo needs for the run's physics. The states matter: steps in which the arm presses on a
-joint limit or the bat touches the ball cost more solver work than a free swing, so a floor
-timed on other states (e.g. a swing from the initial state) would be too low or too high.
+A run's environments count their physics steps, and sample some of their rollout calls, into a
+:class:`PhysicsAudit` (start state, torques, number of steps; ``examples/_physics_audit.py``, a
+hook of the env). Replaying the sampled rollouts with nothing around them, and scaling by the
+counted steps, estimates how long bare MuJoCo needs for the run's physics. The states matter:
+steps in which the arm presses on a joint limit or the bat touches the ball cost more solver
+work than a free swing, so a floor timed on other states (e.g. a swing from the initial state)
+would be too low or too high.
 
 Two floors are given: ``mujoco.batch.Batch.step`` on ``nthread`` threads (the machine's cores;
 the floor the ratios use), and a plain ``mj_step`` loop on one thread.
@@ -13,13 +14,18 @@ the floor the ratios use), and a plain ``mj_step`` loop on one thread.
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import mujoco
 import numpy as np
 from mujoco.batch import Batch
 
-from envs.batting import BattingSimulator, PhysicsAudit
+from envs.batting import BattingSimulator
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from _physics_audit import PhysicsAudit  # noqa: E402
 
 INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 MAX_BATCH = 4096  # simulations per replayed Batch (bounds its memory)

@@ -4,7 +4,7 @@ Runs ``ActivePolicyIteration`` (mode active, the 'decreasing' schedule, Z = 5, K
 batched batting trials and splits its wall time, with timers wrapped around:
 
 * physics: MuJoCo's native rollouts inside the env (``BattingSimulator._run``), counted in
-  coarse and fine physics steps by a :class:`~envs.batting.PhysicsAudit`;
+  coarse and fine physics steps by a :class:`PhysicsAudit` (a hook of the env);
 * env Python: the rest of ``BattingEnv._reset`` / ``_step`` (noise, gap prediction, look-ahead,
   TensorDicts);
 * algebra: psi_hat, importance weights, J and the weighted solves (``build_design``,
@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
-from _physics_floor import replay_batch, replay_loop
+from _physics_floor import PhysicsAudit, replay_batch, replay_loop
 from bench_batting_env import raw_batch_run
 
 import torch_api.design
@@ -39,7 +39,7 @@ import torch_api.iteration
 import torch_api.selector
 import torch_api.solve
 from envs import batting
-from envs.batting import BASIS_TAU, BattingEnv, PhysicsAudit, basis_centers
+from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
 
@@ -112,7 +112,7 @@ def main() -> dict:
     audit = PhysicsAudit(args.audit, seed=0)
 
     def make(rows: int) -> BattingEnv:
-        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, audit=audit))
+        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, hook=audit))
         return envs[-1]
 
     instrument()

@@ -64,18 +64,69 @@ import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from envs.batting import ACTION_TORQUES, CONTROL_DT, BattingSimulator  # noqa: E402
+from envs.batting import ACTION_TORQUES, CONTROL_DT, BattingSimulator, PhysicsHook  # noqa: E402
+
+
+class ArmTrace(PhysicsHook):
+    """Keeps the qpos of every physics step of the last control step (a simulator hook).
+
+    After each step, ``last_qpos[i]`` holds simulation i's qpos at every ``fine_dt`` of that
+    control step, [n_fine, nq], interpolated linearly across coarse steps.
+    """
+
+    wants_qpos = True  # coarse rollouts record qpos too
+
+    def __init__(self) -> None:
+        self.last_qpos: list[np.ndarray] = []
+        self._trace: dict = {}
+
+    def on_step_start(self, sim: BattingSimulator, states: np.ndarray | None) -> None:
+        self._trace = {}
+        if states is None:  # uniform scheme: the fine intervals hold every step
+            return
+        for i in range(sim.num_envs):
+            self._trace[i] = [(0, sim._qpos(states[i, 0]))] + [
+                ((j + 1) * sim.n_sub, sim._qpos(states[i, j + 1])) for j in range(sim.n_coarse)
+            ]
+
+    def on_interval(
+        self, sim: BattingSimulator, ids: np.ndarray, j: int, out: dict, coarse: bool
+    ) -> None:
+        for r, env in enumerate(ids):
+            trace = self._trace.setdefault(env, [])
+            base = j * sim.n_sub
+            trace[:] = [(t, q) for t, q in trace if t <= base]
+            if coarse:
+                nstep = out["qpos"].shape[1]
+                trace.extend((base + (k + 1) * sim.n_sub, out["qpos"][r, k]) for k in range(nstep))
+            else:
+                trace.extend((base + k + 1, out["qpos"][r, k]) for k in range(sim.n_sub))
+
+    def on_step_end(self, sim: BattingSimulator) -> None:
+        grid = np.arange(1, sim.n_fine + 1)
+        self.last_qpos = []
+        for env in range(sim.num_envs):
+            trace = self._trace.get(env)
+            if not trace:  # stepped finely from the start (uniform): trace holds every step
+                self.last_qpos.append(np.repeat(sim.qpos()[env][None], len(grid), 0))
+                continue
+            t = np.array([t for t, _ in trace], dtype=np.float64)
+            q = np.array([q for _, q in trace])
+            self.last_qpos.append(
+                np.stack([np.interp(grid, t, q[:, c]) for c in range(q.shape[1])], 1)
+            )
 
 
 def simulate(sequence: str) -> tuple[list[np.ndarray], list[float], BattingSimulator]:
     """qpos at every physics step of the episode, their times (s), and the simulator."""
-    sim = BattingSimulator(num_envs=1, nthread=1, record=True)
+    trace = ArmTrace()
+    sim = BattingSimulator(num_envs=1, nthread=1, hook=trace)
     sim.reset()
     qpos, times = [sim.qpos()[0]], [0.0]
     torques = np.asarray(ACTION_TORQUES)
     for t, a in enumerate(sequence):
         sim.step(torques[[int(a)]])
-        steps = sim.last_qpos[0]
+        steps = trace.last_qpos[0]
         dt = CONTROL_DT / len(steps)
         qpos.extend(steps)
         times.extend(t * CONTROL_DT + dt * (np.arange(len(steps)) + 1))

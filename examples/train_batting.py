@@ -209,13 +209,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import torch  # noqa: E402
+from _physics_audit import PhysicsAudit  # noqa: E402
 
 from envs.batting import (  # noqa: E402
     BASIS_TAU,
     MAX_STEPS,
     N_ACTIONS,
     BattingEnv,
-    PhysicsAudit,
     basis_centers,
 )
 from torch_api.basis import GaussianActionBasis  # noqa: E402
@@ -374,7 +374,7 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> InterruptibleRu
             batch_size=batch_size,
             seed=seed,
             nthread=chunk.physics_threads,
-            audit=audit,
+            hook=audit,
             end_at_hit=args.end_at_hit,
         )
 

@@ -1,9 +1,11 @@
-"""Tests of envs/batting.py: invariants of the ball-batting env and its integration scheme."""
+"""Tests of envs/batting/: invariants of the ball-batting env and its integration scheme."""
 
 from __future__ import annotations
 
 import importlib
 import math
+import sys
+from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -22,9 +24,11 @@ from envs.batting import (
     BattingEnv,
     BattingGymEnv,
     BattingSimulator,
-    PhysicsAudit,
     flight_carry,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from _physics_audit import PhysicsAudit  # noqa: E402  (instrumentation lives with the examples)
 
 # MuJoCo's joint limits are soft (solreflimit time constant 20 ms, which the 7.5 ms RK4 swing
 # needs: at least 2 x timestep): a joint slamming into its stop at 10-20 rad/s overshoots by
@@ -267,7 +271,7 @@ def test_same_seed_same_episode_different_seed_differs():
 def test_physics_audit_counts_every_step_and_changes_nothing():
     plain = BattingEnv(batch_size=8, seed=5)
     audit = PhysicsAudit(fraction=0.3, seed=1)
-    audited = BattingEnv(batch_size=8, seed=5, audit=audit)
+    audited = BattingEnv(batch_size=8, seed=5, hook=audit)
     a, b = random_episodes(plain, seed=0), random_episodes(audited, seed=0)
     for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
@@ -331,7 +335,7 @@ def test_block_seeds_give_each_block_the_stream_of_a_lone_env():
         alone.set_block_seeds([seed])
         assert torch.equal(noise[2 * block : 2 * block + 2], alone.sample_noise(2))
     batched.set_seed(5)  # back to one stream
-    assert batched.block_rngs is None
+    assert batched.streams.block_rngs is None
     with pytest.raises(ValueError, match="equal blocks"):
         batched.set_block_seeds([1, 2, 3, 4])
 

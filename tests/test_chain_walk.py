@@ -1,4 +1,4 @@
-"""Tests of envs/chain_walk.py against independent ground truth.
+"""Tests of envs/chain_walk/ against independent ground truth.
 
 Reference values come from plain loops / NumPy over the paper's description (section 3.5),
 brute force over all 2^10 deterministic policies, and sampling from the TorchRL env; never from

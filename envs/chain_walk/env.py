@@ -1,0 +1,218 @@
+"""The chain walk (paper section 3.5, Figure 1) as a batched TorchRL environment.
+
+States are numbered 1 … S (the observation holds the state *number*, so a Gaussian basis with
+centres 1, 3, 5, 7, 9 applies to it directly). Its exact model is :mod:`envs.chain_walk.model`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from .._common import RandomStreams, check_seed, done_spec, fresh_seed
+from ._checks import _check_prob, _check_reward_profile, _check_steps
+from .model import (
+    DEFAULT_REWARD_PROFILE,
+    N_ACTIONS,
+    N_STATES,
+    SUCCESS_PROB,
+    ChainWalkModel,
+    chain_walk_model,
+)
+
+__all__ = ["ChainWalkEnv"]
+
+
+class ChainWalkEnv(EnvBase):
+    """Batched chain walk (paper section 3.5, Figure 1) as a TorchRL environment.
+
+    States 1 … S, actions 0 = 'L' and 1 = 'R'. The intended move succeeds with probability
+    ``success_prob``, otherwise the agent moves one state the other way; a move off either end
+    leaves it in place. Reward R(s, a, s') = f(s') (eq. 49); the initial state is uniform. The
+    walk never terminates: ``terminated`` is always False, and with ``max_steps`` the episode is
+    truncated (``truncated`` = ``done`` = True) on the step that reaches that count.
+
+    The env is stateless in the TorchRL sense: ``_step`` reads the current state from the
+    input's ``"observation"`` (the state number as float32 [E, 1]), so stepping a hand-built
+    TensorDict from any state is allowed. With ``max_steps`` the step count travels in
+    ``"step_count"`` (int64 [E, 1]). All randomness comes from the env's own
+    ``torch.Generator`` (``set_seed``); equal seeds give equal trajectories.
+
+    Keys: ``"observation"`` float32 [E, 1]; ``"action"`` int64 [E] (``Categorical(2)``; a
+    one-hot [E, 2] action is accepted too); ``"reward"`` float32 [E, 1]; ``"done"``,
+    ``"terminated"``, ``"truncated"`` bool [E, 1].
+
+    Args:
+        batch_size: number of parallel walks E (an int) or a batch shape.
+        reward_profile: f(s') for s' = 1 … S; must have ``n_states`` entries.
+        success_prob: probability that the intended move succeeds, in [0, 1].
+        max_steps: if given, episodes are truncated after this many steps.
+        n_states: number of states S (10 in the paper).
+        device: device of the env's tensors (CPU by default). The random numbers are drawn on
+            the CPU whatever the device, so a seed gives the same walks on CPU and GPU.
+        seed: seed of the env's generator; ``None`` draws a fresh one (not from global state).
+
+    Example:
+        >>> env = ChainWalkEnv(batch_size=4, seed=0)
+        >>> td = env.rollout(10, break_when_any_done=False)
+        >>> td["observation"].shape, td["action"].shape, td["next", "reward"].shape
+        (torch.Size([4, 10, 1]), torch.Size([4, 10]), torch.Size([4, 10, 1]))
+    """
+
+    def __init__(
+        self,
+        *,
+        batch_size: int | Sequence[int] = 1,
+        reward_profile: torch.Tensor | Sequence[float] = DEFAULT_REWARD_PROFILE,
+        success_prob: float = SUCCESS_PROB,
+        max_steps: int | None = None,
+        n_states: int = N_STATES,
+        device: torch.device | str | None = None,
+        seed: int | None = None,
+    ) -> None:
+        if isinstance(batch_size, int):
+            batch_size = (batch_size,)
+        batch_size = torch.Size(batch_size)
+        if any(n < 1 for n in batch_size):
+            raise ValueError(f"batch_size must hold positive sizes, got {tuple(batch_size)}")
+        if isinstance(n_states, bool) or not isinstance(n_states, int) or n_states < 2:
+            raise ValueError(f"n_states must be an int >= 2, got {n_states!r}")
+        f = _check_reward_profile(reward_profile, n_states)
+        self.success_prob = _check_prob(success_prob, "success_prob")
+        if max_steps is not None:
+            max_steps = _check_steps(max_steps, "max_steps")
+        self.max_steps = max_steps
+        check_seed(seed)
+        super().__init__(
+            device=torch.device("cpu") if device is None else device, batch_size=batch_size
+        )
+        self.n_states = n_states
+        self.reward_profile = f.to(self.device)  # float64 [S], for the exact model
+        self._f32 = f.to(device=self.device, dtype=torch.float32)
+        self.streams = RandomStreams(rows=batch_size.numel())
+        self._make_spec()
+        self.set_seed(fresh_seed() if seed is None else seed)
+
+    # -- specs --------------------------------------------------------------------------------
+
+    def _make_spec(self) -> None:
+        shape = self.batch_size
+        observation = {
+            "observation": Bounded(
+                low=1.0,
+                high=float(self.n_states),
+                shape=(*shape, 1),
+                dtype=torch.float32,
+                device=self.device,
+            )
+        }
+        if self.max_steps is not None:
+            observation["step_count"] = Bounded(
+                low=0,
+                high=self.max_steps,
+                shape=(*shape, 1),
+                dtype=torch.int64,
+                device=self.device,
+            )
+        self.observation_spec = Composite(observation, shape=shape, device=self.device)
+        self.action_spec = Categorical(
+            N_ACTIONS, shape=shape, dtype=torch.int64, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(*shape, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = done_spec(shape, self.device)
+
+    # -- seeding ------------------------------------------------------------------------------
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.streams.seed(seed)  # on the CPU whatever the env's device: see `_draw`
+
+    def set_block_seeds(self, seeds: Sequence[int]) -> None:
+        """Give each of ``len(seeds)`` equal, consecutive blocks of rows its own random stream.
+
+        With rows laid out block-major (e.g. one block per independent trial), block ``b``
+        then draws exactly what an env of one block seeded with ``seeds[b]`` would: a batched
+        run of many trials reproduces one-at-a-time runs. ``set_seed`` returns to one stream.
+        """
+        self.streams.set_block_seeds(seeds)
+
+    def _draw(self, sampler, shape: torch.Size, *args) -> torch.Tensor:
+        """``sampler(*args, shape, generator=...)`` from the env's stream(s), on its device.
+
+        The numbers are drawn on the CPU and moved to the env's device, so a seed gives the
+        same walks on every device (a CUDA generator would draw other numbers).
+        """
+        return self.streams.draw(sampler, shape, *args).to(self.device)
+
+    # -- dynamics -----------------------------------------------------------------------------
+
+    def model(self) -> ChainWalkModel:
+        """The exact model of this env (float64 tensors on the env's device)."""
+        return chain_walk_model(
+            self.reward_profile, self.success_prob, n_states=self.n_states, device=self.device
+        )
+
+    def _flags(self, truncated: torch.Tensor) -> dict[str, torch.Tensor]:
+        terminated = torch.zeros_like(truncated)
+        return {"done": truncated | terminated, "terminated": terminated, "truncated": truncated}
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        shape = self.batch_size
+        state = self._draw(torch.randint, torch.Size((*shape, 1)), 1, self.n_states + 1)
+        out = {"observation": state.to(torch.float32)}
+        if self.max_steps is not None:
+            out["step_count"] = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
+        # Partial reset: rows outside the "_reset" mask keep their state (EnvBase.reset merges
+        # the same way; doing it here keeps a direct `_reset` call correct too).
+        mask = tensordict.get("_reset", None) if tensordict is not None else None
+        if mask is not None and not mask.all():
+            for key in out:
+                old = tensordict.get(key, None)
+                if old is not None:
+                    out[key] = torch.where(mask.reshape(*shape, 1), out[key], old)
+        out.update(self._flags(torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)))
+        return TensorDict(out, batch_size=shape, device=self.device)
+
+    def _action_indices(self, action: torch.Tensor) -> torch.Tensor:
+        """Action indices [*E] from indices [*E], [*E, 1] or a one-hot [*E, 2]."""
+        n_batch = len(self.batch_size)
+        if action.ndim == n_batch + 1 and action.shape[-1] == N_ACTIONS:
+            return action.long().argmax(-1)  # one-hot (bool or integer)
+        if action.ndim == n_batch + 1 and action.shape[-1] == 1:
+            action = action.squeeze(-1)
+        if action.shape != self.batch_size:
+            raise ValueError(
+                f"action must have shape {tuple(self.batch_size)} (indices) or "
+                f"{(*self.batch_size, N_ACTIONS)} (one-hot), got {tuple(action.shape)}"
+            )
+        action = action.long()
+        if ((action < 0) | (action >= N_ACTIONS)).any():
+            raise ValueError(f"action indices must be 0 ('L') or 1 ('R'), got {action.unique()}")
+        return action
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shape = self.batch_size
+        state = tensordict["observation"].reshape(shape).round().long()
+        if ((state < 1) | (state > self.n_states)).any():
+            raise ValueError(
+                f"observation must hold state numbers 1 … {self.n_states}, got {state.unique()}"
+            )
+        action = self._action_indices(tensordict["action"])
+        intended = 2 * action - 1  # 'L' -> -1, 'R' -> +1
+        success = self._draw(torch.rand, shape) < self.success_prob
+        move = torch.where(success, intended, -intended)
+        next_state = (state + move).clamp(1, self.n_states)
+        out = {
+            "observation": next_state.to(torch.float32).unsqueeze(-1),
+            "reward": self._f32[next_state - 1].unsqueeze(-1),
+        }
+        truncated = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        if self.max_steps is not None:
+            step_count = tensordict["step_count"] + 1
+            out["step_count"] = step_count
+            truncated = step_count >= self.max_steps
+        out.update(self._flags(truncated))
+        return TensorDict(out, batch_size=shape, device=self.device)
