@@ -6,8 +6,9 @@ env's scheme (coarse RK4 swing, fine impact window) and once with a uniform Eule
 agreement, first-hit step agreement, carry error (mean, max, 95 % quantile) over sequences that
 hit in both, and the physics steps spent per episode (coarse RK4 steps = steps - fine). A uniform
 run at the scheme's own fine step is shown too, and with ``--baseline FILE`` the scheme of
-another version of envs/batting.py (e.g. ``git show HEAD~1:envs/batting.py``), for a
-before/after table against one reference.
+another version of the batting module as one file (a revision before envs/batting/ became a
+package, e.g. ``git show 9ceec5b:envs/batting.py > old.py``), for a before/after table against
+one reference.
 
     python benchmarks/batting_fidelity.py --out results/batting_fidelity.json
 """

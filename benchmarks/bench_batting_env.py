@@ -12,8 +12,9 @@ of coarse and fine steps done by raw MuJoCo on the env's own two models:
   at least the env's step count, give the time of the env's mix of steps.
 
 The env steps its simulations on ``min(E, cores)`` threads (the ``threads`` column). With
-``--baseline FILE`` another version of ``envs/batting.py`` (e.g. ``git show
-HEAD~1:envs/batting.py``) is timed in the same repeats, interleaved, for a before/after table.
+``--baseline FILE`` another version of the batting module as one file (a revision before
+``envs/batting/`` became a package, e.g. ``git show 9ceec5b:envs/batting.py > old.py``) is
+timed in the same repeats, interleaved, for a before/after table.
 Several repeats, medians.
 
     python benchmarks/bench_batting_env.py --repeats 5
