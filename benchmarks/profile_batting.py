@@ -42,6 +42,7 @@ from envs import batting
 from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 
 DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
 TIMERS: dict[str, float] = defaultdict(float)
@@ -118,7 +119,7 @@ def main() -> dict:
     instrument()
     api = ActivePolicyIteration(
         env=make,
-        reward_free_env=make,
+        selector=SamplingPolicySelector(env=make),
         basis=basis(),
         schedule=DECREASING[: args.iterations],
         num_steps=10,

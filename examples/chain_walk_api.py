@@ -172,6 +172,7 @@ from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.dispatch import run_chunks, split_trials, trial_seeds  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.selector import SamplingPolicySelector  # noqa: E402
 from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
@@ -258,14 +259,16 @@ def run_chunk(chunk: Chunk) -> dict:
     evaluate, optimum = make_evaluator(args, len(chunk.trials))
     api = ActivePolicyIteration(
         env=env_factory(run_seed, _ROLE_REWARDED, args.device),
-        reward_free_env=env_factory(run_seed, _ROLE_REWARD_FREE, args.device),
+        selector=SamplingPolicySelector(
+            env=env_factory(run_seed, _ROLE_REWARD_FREE, args.device), num_repeats=args.repeats
+        )
+        if chunk.mode == "active"
+        else None,
         basis=basis,
         schedule=chunk.schedule,
         num_steps=args.steps,
         gamma=GAMMA,
-        mode=chunk.mode,
         lam=args.lam,
-        num_repeats=args.repeats,
         psi_mode="grouped",
         tie_break=args.tie_break,
         evaluate=evaluate,

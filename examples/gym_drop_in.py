@@ -166,6 +166,7 @@ from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.selector import SamplingPolicySelector  # noqa: E402
 from torch_api.store import StoreError  # noqa: E402
 
 ENV_ID = "CartPole-v1"
@@ -264,15 +265,18 @@ def run_method(args: Args, mode: str) -> tuple[dict, dict]:
     evaluate = make_evaluator(args)
     api = ActivePolicyIteration(
         env=make_env,
-        reward_free_env=make_env if args.reward_free_workers else None,
-        reward_free_workers=args.reward_free_workers,
+        selector=SamplingPolicySelector(
+            env=make_env if args.reward_free_workers else None,
+            num_repeats=args.repeats,
+            num_workers=args.reward_free_workers,
+        )
+        if mode == "active"
+        else None,
         basis=make_basis(args),
         schedule=schedule_of(args),
         num_steps=args.steps,
         gamma=args.gamma,
-        mode=mode,
         lam=args.lam,
-        num_repeats=args.repeats,
         psi_mode="single",
         evaluate=evaluate,
         num_trials=args.trials,

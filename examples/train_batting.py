@@ -228,6 +228,7 @@ from torch_api.dispatch import (  # noqa: E402
 )
 from torch_api.iteration import ActivePolicyIteration, derive_seed  # noqa: E402
 from torch_api.policies import LinearQPolicy  # noqa: E402
+from torch_api.selector import SamplingPolicySelector  # noqa: E402
 from torch_api.store import StoreError  # noqa: E402
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
@@ -373,14 +374,14 @@ def make_run(chunk: Chunk, audit: PhysicsAudit | None = None) -> ActivePolicyIte
     seed = args.seed if first == 0 else chunk_seed(args.seed, first)
     return ActivePolicyIteration(
         env=env,
-        reward_free_env=env,
+        selector=SamplingPolicySelector(env=env, num_repeats=args.repeats)
+        if chunk.mode == "active"
+        else None,
         basis=make_basis(parse_widths(args.basis_widths)),
         schedule=chunk.schedule,
         num_steps=MAX_STEPS,
         gamma=GAMMA,
-        mode=chunk.mode,
         lam=args.lam,
-        num_repeats=args.repeats,
         psi_mode="single",
         fit=args.fit,
         tie_break=args.tie_break,

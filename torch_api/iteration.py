@@ -41,7 +41,7 @@ from torch_api.candidates import (
     make_family,
     paper_epsilon,
 )
-from torch_api.collect import EnvPerBatch
+from torch_api.collect import EnvPerBatch, rollouts_or
 from torch_api.design import build_design
 from torch_api.durable import DurableState, fingerprint
 from torch_api.lstd import phi_rows, weighted_lstd
@@ -67,7 +67,6 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 SLICES = ("all", "episode")
-MODES = ("active", "passive")
 
 
 class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
@@ -75,8 +74,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
 
     Algorithm 1 of Akiyama, Hachiya & Sugiyama (2010). In iteration l = 1 … L:
 
-    1. the sampling policy is the J'-chosen candidate (``mode="active"``, Algorithm 2, through
-       :class:`~torch_api.selector.SamplingPolicySelector`) or pi_l itself (``"passive"``);
+    1. the sampling policy is the J'-chosen candidate (active learning: Algorithm 2, by the
+       ``selector`` given) or pi_l itself (passive: ``selector=None``);
     2. ``schedule[l-1]`` rewarded episodes of N steps are bought with it and stored;
     3. θ_l is fitted on ALL rewarded episodes so far (sample reuse, eq. 56), psi_hat on that
        union with pi_l and importance weights towards pi_l;
@@ -95,11 +94,15 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         schedule: episodes bought per iteration ``(M_1, …, M_L)``, each ≥ 1.
         num_steps: N, steps per episode.
         gamma: discount γ in (0, 1].
-        mode: ``"active"`` or ``"passive"``.
+        selector: the :class:`~torch_api.selector.SamplingPolicySelector` choosing each
+            iteration's sampling policy (active learning), or None (passive: pi_l samples).
+            It brings what is its own (its reward-free env or collector, Z = ``num_repeats``,
+            worker processes, criterion); the loop binds it to its psi_hat, N, λ, fit, device
+            and reward-free streams (:meth:`~torch_api.selector.SamplingPolicySelector.bind`;
+            the object passed is left as it is), and to ``env`` where it has none. E.g.
+            ``selector=SamplingPolicySelector(env=lambda rows: make_env(rows), num_repeats=5)``
+            (an env whose batch is ``T·Z·K·M_l`` rolls out once).
         lam: λ > 0.
-        num_repeats: Z for J'.
-        reward_free_env: environment for the selector's reward-free rollouts, or a callable
-            ``batch_size -> env`` (give one whose batch is ``Z·K·M_l`` for speed). Default: env.
         psi_mode: ``"grouped"`` (finite states), ``"single"`` (the paper's continuous choice)
             or ``"knn"``; ``knn_k`` its k.
         initial_theta: θ_0 of pi_1 (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67).
@@ -137,7 +140,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             against other writers and checked writable here, before anything is bought.
         resume: continue the run stored at ``checkpoint_path`` (built with the same settings:
             everything that gives the stored data its meaning must match, while ``lam``,
-            ``device``, ``reward_free_workers`` and ``evaluate`` may change). Only missing
+            ``device``, the selector's workers and ``evaluate`` may change). Only missing
             rewarded episodes are bought, with the uninterrupted run's random streams. A
             missing run starts fresh (``resumed`` is then False).
         overwrite: discard a run stored at ``checkpoint_path``. Without ``resume`` or
@@ -149,10 +152,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         device: where psi_hat, J and the solves run (e.g. ``"cuda"``). The rollouts stay on
             the environments' device (the policies' θ follows the observations) and the
             episode buffers are held on the CPU. Default: CPU.
-        reward_free_workers: if > 0, the reward-free episodes are collected in this many worker
-            processes by TorchRL's ``MultiSyncCollector``
-            (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
-            must then be a picklable callable ``batch_size -> env``.
         fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
             ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
             learner; needs ``psi_mode="single"``).
@@ -166,11 +165,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
             (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
             ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
-            ``StepCounter(max_steps=N)``): the rewarded and the reward-free episodes are then
-            read from it (:func:`~torch_api.data.collect_with_collector`) instead of from
-            ``env.rollout`` (the default; faster on batched envs). The collector's env is then
-            seeded by the user, not by ``seed``; ``env`` still names the env (its action
-            encoding). Not with ``num_trials``.
+            ``StepCounter(max_steps=N)``): the rewarded episodes are then read from it
+            (:func:`~torch_api.data.collect_with_collector`) instead of from ``env.rollout``
+            (the default; faster on batched envs); give the selector one too for the
+            reward-free ones. The collector's env is then seeded by the user, not by ``seed``;
+            ``env`` still names the env (its action encoding). Not with ``num_trials``.
         on_checkpoint: optional hook ``(api) -> None`` called after every commit to the store
             (progress, a testing aid that stops the process at a given commit).
         on_iteration: optional hook ``(record) -> None`` called with each completed
@@ -195,10 +194,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         schedule: Sequence[int],
         num_steps: int,
         gamma: float,
-        mode: str = "active",
+        selector: SamplingPolicySelector | None = None,
         lam: float = DEFAULT_LAMBDA,
-        num_repeats: int = 5,
-        reward_free_env: EnvBase | Callable[[int], EnvBase] | None = None,
         psi_mode: str = "single",
         knn_k: int = 5,
         initial_theta: torch.Tensor | None = None,
@@ -214,7 +211,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         keep_reward_free: bool = True,
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
-        reward_free_workers: int = 0,
         resume: bool = False,
         overwrite: bool = False,
         rewarded_slice: str = "all",
@@ -224,8 +220,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         on_checkpoint: Callable[[ActivePolicyIteration], None] | None = None,
         on_iteration: Callable[[IterationRecord], None] | None = None,
     ) -> None:
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if selector is not None and not isinstance(selector, SamplingPolicySelector):
+            raise ValueError(
+                "selector must be a SamplingPolicySelector or None (passive), got "
+                f"{type(selector).__name__}"
+            )
         if improvement not in IMPROVEMENTS:
             raise ValueError(f"improvement must be one of {IMPROVEMENTS}, got {improvement!r}")
         if tie_break not in TIE_BREAKS:
@@ -234,9 +233,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
         schedule = _check_schedule(schedule)
         num_steps = _count("num_steps", num_steps)
-        num_repeats = _count("num_repeats", num_repeats)
         knn_k = _count("knn_k", knn_k)
-        reward_free_workers = _count("reward_free_workers", reward_free_workers, 0)
         if num_trials is not None:
             num_trials = _count("num_trials", num_trials)
         if not 0 < gamma <= 1:
@@ -250,9 +247,9 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
         if not candidate_offsets:
             raise ValueError("candidate_offsets must not be empty")
-        if collector is not None and (num_trials is not None or reward_free_workers):
-            raise ValueError("collector works without num_trials and reward_free_workers")
-        self.collector = collector
+        if num_trials is not None and (collector or getattr(selector, "collector", None)):
+            raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+        self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
         self.on_checkpoint = on_checkpoint
         self.on_iteration = on_iteration
         if num_trials is not None and isinstance(env, EnvBase):
@@ -265,9 +262,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.schedule = schedule
         self.num_steps = int(num_steps)
         self.gamma = float(gamma)
-        self.mode = mode
         self.lam = float(lam)
-        self.num_repeats = int(num_repeats)
         self.epsilon_schedule = epsilon_schedule
         self.candidate_offsets = tuple(candidate_offsets)
         self.improvement = improvement
@@ -318,27 +313,26 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self._action_encoding = None  # the env's action encoding, read from its first instance
         if isinstance(env, EnvBase):
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
+        self.selector = None
+        if selector is not None:
+            self.selector = selector.bind(
+                env=self._env_for,
+                psi=self.psi,
+                num_steps=self.num_steps,
+                lam=self.lam,
+                fit=fit,
+                device=self.device,
+                generator=self.reward_free_generator,
+            )
+        repeats = 0 if selector is None else selector.num_repeats
         self.reward_free = EpisodeBuffer(
-            rewarded=False, capacity=self.num_repeats * self.family.num_candidates * sum(schedule)
+            rewarded=False, capacity=max(1, repeats * self.family.num_candidates * sum(schedule))
         )
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
         self._pending: dict | None = None  # an iteration whose rewards are bought, θ not yet fit
         self._selection: dict | None = None  # the coming iteration's chosen sampling policy
         self._partial: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
-        self.selector = SamplingPolicySelector(
-            env=reward_free_env if reward_free_env is not None else self._env_for,
-            psi=self.psi,
-            num_episodes=1,  # set per iteration (M_l)
-            num_steps=self.num_steps,
-            num_repeats=self.num_repeats,
-            lam=self.lam,
-            generator=self.reward_free_generator,
-            device=self.device,
-            num_workers=reward_free_workers,
-            fit=fit,
-            collector=collector,
-        )
         self.policy = self._policy(self.theta, 1)
         self.store: RunStore | None = None
         self.resumed = False
@@ -353,6 +347,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
                     self._close_store()
                     raise
                 self.resumed = True
+
+    @property
+    def mode(self) -> str:
+        """``"active"`` with a selector, ``"passive"`` without."""
+        return "passive" if self.selector is None else "active"
 
     @property
     def rewarded_transitions(self) -> int:
@@ -427,7 +426,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         object keeps its state: envs are built again if it goes on, a store is not."""
         self._close_store()
         self._env_for.close()
-        self.selector.close()
+        if self.selector is not None:
+            self.selector.close()
 
     def __enter__(self) -> ActivePolicyIteration:
         return self
