@@ -35,7 +35,7 @@ from _physics_floor import PhysicsAudit, replay_batch, replay_loop
 from bench_batting_env import raw_batch_run
 
 import torch_api.design
-import torch_api.iteration
+import torch_api.fit
 import torch_api.selector
 import torch_api.solve
 from envs import batting
@@ -89,7 +89,7 @@ def instrument() -> None:
     time_physics()
     wrap(BattingEnv, "_step", "env")
     wrap(BattingEnv, "_reset", "env")
-    for module in (torch_api.iteration, torch_api.selector):
+    for module in (torch_api.fit, torch_api.selector):
         for attr in ("build_design", "weighted_ridge", "j_values", "j_criterion"):
             if hasattr(module, attr):
                 wrap(module, attr, "algebra", outermost=True)

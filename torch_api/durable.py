@@ -108,6 +108,23 @@ class DurableState:
         }
         return config
 
+    def _open_store(self, *, resume: bool, overwrite: bool) -> None:
+        """Open the run's store at ``checkpoint_path`` (if any) and restore a stored run."""
+        self.store: RunStore | None = None
+        self.resumed = False
+        if self.checkpoint_path is None:
+            return
+        self.store = RunStore(
+            self.checkpoint_path, config=self._config(), resume=resume, overwrite=overwrite
+        )
+        if not self.store.started_fresh:
+            try:
+                self._restore(self.store.stored)
+            except BaseException:
+                self._close_store()
+                raise
+            self.resumed = True
+
     def _on_commit(self) -> None:
         """Called after every commit to the store: runs the ``on_checkpoint`` hook."""
         if self.on_checkpoint is not None:

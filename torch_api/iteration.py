@@ -5,6 +5,7 @@ it is made of, one concept a module:
 
 ==================================== ====================================================
 :mod:`torch_api.buying`              steps 1-2: choose the sampling policy, buy, commit
+:mod:`torch_api.fit`                 step 3: θ_l on every rewarded episode (BRM or LSTD-Q)
 :mod:`torch_api.durable`             the durable state: settings a resume checks, restore
 :mod:`torch_api.candidates`          candidate families (ε-greedy, softmax) as small objects
 :mod:`torch_api.streams`             every random stream from (seed, trial, iteration, role)
@@ -29,41 +30,27 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api._checks import HUGE_LAMBDA, _check_lambda, _check_schedule, _count
+from torch_api._checks import _check_choice, _check_lambda, _check_schedule, _count, _initial_theta
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import EpisodeBuffer, _warm_start
 from torch_api.buying import RewardBuying
 from torch_api.candidates import (
-    IMPROVEMENTS,
     PAPER_EPSILON_OFFSETS,
-    SOFTMAX_CANDIDATE_SCALES,
     CandidatePolicies,
     make_family,
     paper_epsilon,
 )
 from torch_api.collect import EnvPerBatch, rollouts_or
-from torch_api.design import build_design
-from torch_api.durable import DurableState, fingerprint
-from torch_api.lstd import phi_rows, weighted_lstd
+from torch_api.durable import DurableState
+from torch_api.fit import FITS, fit_theta
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.records import IterationRecord
-from torch_api.selector import FITS, SamplingPolicySelector
-from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
-from torch_api.store import RunStore
-from torch_api.streams import TrialStreams, derive_seed, slice_seed
+from torch_api.selector import SamplingPolicySelector
+from torch_api.solve import DEFAULT_LAMBDA
+from torch_api.streams import TrialStreams, derive_seed
 
-__all__ = [
-    "HUGE_LAMBDA",
-    "IMPROVEMENTS",
-    "SOFTMAX_CANDIDATE_SCALES",
-    "ActivePolicyIteration",
-    "IterationRecord",
-    "derive_seed",
-    "fingerprint",
-    "paper_epsilon",
-    "slice_seed",
-]
+__all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed"]
 
 _log = logging.getLogger(__name__)
 SLICES = ("all", "episode")
@@ -109,7 +96,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         epsilon_schedule: ε of pi_l as a function of l (default ``0.15 / l``).
         candidate_offsets: candidates ε_l + offset (eq. 59).
         improvement: ``"epsilon_greedy"`` (the paper) or ``"softmax"`` (eq. 7; pi_l uses
-            ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
+            ``beta`` and the candidates β times
+            :data:`~torch_api.candidates.SOFTMAX_CANDIDATE_SCALES`).
         beta: softmax temperature.
         tie_break: how the ε-greedy policies share the greedy mass among actions whose Q̂ ties
             for the maximum: ``"uniform"`` (equal parts: pi_1 of θ_0 = 1, and any pi_l of
@@ -121,12 +109,10 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
             per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
-        seed: seed of the run. Each iteration re-seeds the policies' stream and the
-            environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
-            the same seed in active and passive mode share the rewarded environments' streams
-            and the sampling streams of the rewarded episodes (a paired design): the reward-free
-            rollouts of the active mode draw their actions from streams of their own
-            (``"reward_free_policy"``), so the pair differs only by the sampling policy.
+        seed: seed of the run: every stream of iteration l (policies, ``env.set_seed``) is
+            derived from ``(seed, l, role)`` (:class:`~torch_api.streams.TrialStreams`). Active
+            and passive runs of one seed share the rewarded episodes' streams (the reward-free
+            rollouts draw from streams of their own): a pair differs only by the sampling policy.
         trial_seeds: with ``num_trials``, one seed per trial (default: derived from ``seed``).
             Each trial then draws from streams of its own, seeded from ``(trial_seed, l)``: the
             policies' sampling and, for environments with ``set_block_seeds`` (this project's
@@ -180,10 +166,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         >>> from torch_api.basis import GaussianActionBasis
         >>> basis = GaussianActionBasis(centers=torch.zeros(1, 4), tau=1.0, num_actions=2)
         >>> api = ActivePolicyIteration(env=GymEnv("CartPole-v1"), basis=basis, schedule=(2, 1),
-        ...                             num_steps=5, gamma=0.9)
+        ...                             num_steps=5, gamma=0.9,
+        ...                             selector=SamplingPolicySelector(num_repeats=2))
         >>> history = api.run()
-        >>> len(history), api.rewarded_transitions <= 3 * 5
-        (2, True)
+        >>> len(history), api.mode, api.rewarded_transitions <= 3 * 5
+        (2, 'active', True)
     """
 
     def __init__(
@@ -225,12 +212,14 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
                 "selector must be a SamplingPolicySelector or None (passive), got "
                 f"{type(selector).__name__}"
             )
-        if improvement not in IMPROVEMENTS:
-            raise ValueError(f"improvement must be one of {IMPROVEMENTS}, got {improvement!r}")
-        if tie_break not in TIE_BREAKS:
-            raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
-        if improvement == "softmax" and not (beta is not None and beta > 0):
-            raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
+        # the candidate family checks improvement, beta and the offsets
+        family = make_family(
+            improvement,
+            epsilon_schedule=epsilon_schedule,
+            candidate_offsets=candidate_offsets,
+            beta=beta,
+        )
+        _check_choice("tie_break", tie_break, TIE_BREAKS)
         schedule = _check_schedule(schedule)
         num_steps = _count("num_steps", num_steps)
         knn_k = _count("knn_k", knn_k)
@@ -239,14 +228,13 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         if not 0 < gamma <= 1:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         _check_lambda(lam)
-        if rewarded_slice not in SLICES:
-            raise ValueError(f"rewarded_slice must be one of {SLICES}, got {rewarded_slice!r}")
+        _check_choice("rewarded_slice", rewarded_slice, SLICES)
         if (resume or overwrite) and checkpoint_path is None:
             raise ValueError("resume and overwrite need a checkpoint_path")
-        if psi_mode not in PSI_MODES:
-            raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
-        if not candidate_offsets:
-            raise ValueError("candidate_offsets must not be empty")
+        _check_choice("psi_mode", psi_mode, PSI_MODES)
+        _check_choice("fit", fit, FITS)
+        if fit == "lstd" and psi_mode != "single":
+            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
         if num_trials is not None and (collector or getattr(selector, "collector", None)):
             raise ValueError("a collector (the loop's or the selector's) works without num_trials")
         self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
@@ -268,21 +256,12 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.improvement = improvement
         self.beta = beta
         self.tie_break = tie_break
-        if fit not in FITS:
-            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
-        if fit == "lstd" and psi_mode != "single":
-            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
         self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
         self.streams = TrialStreams.for_trials(self.seed, num_trials, trial_seeds)
         self.trial_seeds = self.streams.trial_seeds
-        self.family = make_family(
-            improvement,
-            epsilon_schedule=epsilon_schedule,
-            candidate_offsets=self.candidate_offsets,
-            beta=beta,
-        )
+        self.family = family
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
@@ -291,15 +270,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         # the reward-free rollouts' own sampling streams (re-seeded every iteration)
         self.reward_free_generator = torch.Generator().manual_seed(self.seed)
         self._reward_free_blocks: list[torch.Generator] | None = None
-        theta = torch.ones(basis.num_features, dtype=torch.float64)
-        if initial_theta is not None:
-            theta = torch.as_tensor(initial_theta, dtype=torch.float64)
-            if theta.shape != (basis.num_features,):
-                raise ValueError(
-                    f"initial_theta must have shape [{basis.num_features}] (the basis width), "
-                    f"got {tuple(theta.shape)}"
-                )
-        self._initial_theta = theta
+        self._initial_theta = theta = _initial_theta(initial_theta, basis.num_features)
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.rewarded_slice = rewarded_slice
         self.iteration = 0  # iterations completed
@@ -334,19 +305,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self._selection: dict | None = None  # the coming iteration's chosen sampling policy
         self._partial: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
         self.policy = self._policy(self.theta, 1)
-        self.store: RunStore | None = None
-        self.resumed = False
-        if checkpoint_path is not None:
-            self.store = RunStore(
-                self.checkpoint_path, config=self._config(), resume=resume, overwrite=overwrite
-            )
-            if not self.store.started_fresh:
-                try:
-                    self._restore(self.store.stored)
-                except BaseException:
-                    self._close_store()
-                    raise
-                self.resumed = True
+        self._open_store(resume=resume, overwrite=overwrite)
 
     @property
     def mode(self) -> str:
@@ -371,16 +330,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         l_now = self.iteration + 1
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
-        design = build_design(episodes, self.policy.to_device(self.device), self.psi)
-        if self.fit == "lstd":
-            phi = phi_rows(episodes, self.basis)
-            self.theta = weighted_lstd(
-                phi, design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-            ).cpu()
-        else:
-            self.theta = weighted_ridge(
-                design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-            ).cpu()
+        policy = self.policy.to_device(self.device)
+        self.theta = fit_theta(self.fit, episodes, policy, self.psi, self.basis, self.lam).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started

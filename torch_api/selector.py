@@ -20,6 +20,7 @@ from torch_api.candidates import PAPER_EPSILON_OFFSETS, candidate_epsilons
 from torch_api.collect import EnvPerBatch
 from torch_api.criterion import Criterion, j_eq46, j_values
 from torch_api.episodes import as_episodes
+from torch_api.fit import FITS
 from torch_api.lstd import lstd_j_values
 from torch_api.policy_base import param_dims_of
 from torch_api.psi import PsiHat
@@ -33,8 +34,6 @@ __all__ = [
     "candidate_epsilons",
     "j_values",
 ]
-
-FITS = ("brm", "lstd")  # the paper's least-squares fit on psi_hat, or LSTD-Q (torch_api.lstd)
 
 
 @dataclass
