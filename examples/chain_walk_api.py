@@ -179,10 +179,9 @@ def run_chunk(chunk: harness.Chunk) -> dict:
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
     )
-    first = api.initial_policy()  # pi_1, with streams of its own below
-    first.block_generators = [
-        torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
-    ]
+    first = api.initial_policy().with_streams(  # pi_1, with streams of its own
+        [torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")]
+    )
     return harness.run_iterations(chunk, api, initial=evaluate(first))  # pi_1: iteration 0
 
 
