@@ -282,10 +282,9 @@ def run_chunk(chunk: Chunk) -> dict:
         print(f"resumed {chunk.store} at iteration {api.iteration}/{len(chunk.schedule)}")
     elif args.resume:
         print(f"nothing stored in {chunk.store}: starting it fresh")
-    first = api.initial_policy()  # pi_1, with streams of its own below
-    first.block_generators = [
-        torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")
-    ]
+    first = api.initial_policy().with_streams(  # pi_1, with streams of its own
+        [torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")]
+    )
     initial = evaluate(first)  # pi_1, iteration 0
     started = time.perf_counter()
     history = api.run(progress=chunk.progress)

@@ -292,10 +292,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
-        self.generator = torch.Generator().manual_seed(self.seed)
-        # the reward-free rollouts' own sampling streams (re-seeded every iteration)
-        self.reward_free_generator = torch.Generator().manual_seed(self.seed)
-        self._reward_free_blocks: list[torch.Generator] | None = None
         theta = torch.ones(basis.num_features, dtype=torch.float64)
         if initial_theta is not None:
             theta = torch.as_tensor(initial_theta, dtype=torch.float64)
@@ -333,7 +329,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             num_steps=self.num_steps,
             num_repeats=self.num_repeats,
             lam=self.lam,
-            generator=self.reward_free_generator,
             device=self.device,
             num_workers=reward_free_workers,
             fit=fit,

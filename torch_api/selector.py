@@ -48,7 +48,8 @@ class PolicyStack(ActionProbsPolicy):
     Args:
         policies: K policies with ``action_probs``.
         episodes_per_policy: M, consecutive rows per policy.
-        generator: random stream for sampling.
+        generator: random stream for sampling (or ``streams=``: one generator per block of
+            rows, e.g. per trial; see :func:`~torch_api.policy_base.sample_actions`).
     """
 
     def __init__(self, policies: Sequence, *, episodes_per_policy: int, generator=None, **io):
@@ -71,13 +72,10 @@ class PolicyStack(ActionProbsPolicy):
 
     def trial_slice(self, trials: slice) -> PolicyStack:
         """The stack of some trials only (each policy sliced; the per-trial streams too)."""
-        return self._copy_streams(
-            PolicyStack(
-                [p.trial_slice(trials) for p in self.policies],
-                episodes_per_policy=self.episodes_per_policy,
-                **self._io_kwargs(),
-            ),
-            trials,
+        return PolicyStack(
+            [p.trial_slice(trials) for p in self.policies],
+            episodes_per_policy=self.episodes_per_policy,
+            **self._io_kwargs(trials),
         )
 
 
@@ -243,11 +241,11 @@ class SamplingPolicySelector:
         trial_dims = param_dims_of(candidates[0])
         trials = math.prod(trial_dims)
         z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
-        generator = self.generator or candidates[0].generator
+        blocks = candidates[0].block_generators  # one stream per trial, else one for all
+        streams = blocks if blocks is not None else self.generator or candidates[0].generator
         ids = torch.arange(k).reshape(k, 1, 1)
         if self.num_workers:
-            stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
-            stack.block_generators = getattr(candidates[0], "block_generators", None)
+            stack = PolicyStack(candidates, episodes_per_policy=m, streams=streams)
             seed, block_seeds = self._worker_env_seeds
             episodes = collect_episodes_in_workers(
                 self._envs.env,
@@ -267,8 +265,7 @@ class SamplingPolicySelector:
             return episodes
         env = self.env_for(trials * z * k * m)
         if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
-            stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
-            stack.block_generators = getattr(candidates[0], "block_generators", None)
+            stack = PolicyStack(candidates, episodes_per_policy=m, streams=streams)
             episodes = collect_episodes(
                 env,
                 stack,
