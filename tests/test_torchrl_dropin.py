@@ -121,15 +121,16 @@ def test_exploration_types_and_the_global_generator():
 
 @pytest.mark.parametrize("factory", [cartpole_rows, cartpole_processes], ids=["serial", "parallel"])
 def test_batched_env_factories(factory):
+    parallel = factory is cartpole_processes
     api = ActivePolicyIteration(  # two trials: the env is built per batch size by the factory
         env=factory,
         basis=cartpole_basis(),
-        schedule=(2,),
+        schedule=(1,) if parallel else (2,),  # ParallelEnv: T·M = 2 worker processes
         num_steps=8,
         gamma=0.95,
         num_repeats=1,
         candidate_offsets=(0.0, 0.5),
-        mode="active" if factory is cartpole_rows else "passive",
+        mode="passive" if parallel else "active",
         num_trials=2,
         seed=0,
     )

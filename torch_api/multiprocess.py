@@ -176,7 +176,9 @@ def collect_episodes_in_workers(
         policy_factory=policy_factories,
         frames_per_batch=[len(part) * per_block * num_steps for part in parts],
         total_frames=rows * num_steps,
-        reset_at_each_iter=True,
+        # one batch: the collector's first reset is the env's first after seeding, as in
+        # env.rollout (a second reset would draw other initial states from the env's streams)
+        reset_at_each_iter=False,
         cat_results=0,
         trust_policy=True,
     )
