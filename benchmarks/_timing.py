@@ -50,24 +50,27 @@ def median_times(
 ) -> dict[str, Timing]:
     """Median wall-clock times of several functions, timed side by side.
 
-    Each function gets ``warmup`` untimed calls; then the timed calls are interleaved round by
+    Each function gets ``warmup`` untimed calls (0: none, ``min_repeats`` timed rounds only, for a
+    smoke run); then the timed calls are interleaved round by
     round (a, b, c, a, b, c, ...) so that load from other processes hits all of them alike.
     The number of rounds fits ``budget_s`` per function (judged from the first warm-up calls),
     clamped to ``[min_repeats, max_repeats]``.
     """
-    if warmup < 1 or min_repeats < 1 or max_repeats < min_repeats:
+    if warmup < 0 or min_repeats < 1 or max_repeats < min_repeats:
         raise ValueError(
-            f"need warmup >= 1 and 1 <= min_repeats <= max_repeats, got warmup={warmup}, "
+            f"need warmup >= 0 and 1 <= min_repeats <= max_repeats, got warmup={warmup}, "
             f"min_repeats={min_repeats}, max_repeats={max_repeats}"
         )
     first = 0.0
-    for fn in fns.values():
+    for fn in fns.values() if warmup else ():
         start = time.perf_counter()
         fn()
         first += time.perf_counter() - start
         for _ in range(warmup - 1):
             fn()
-    rounds = int(min(max(budget_s * len(fns) / max(first, 1e-9), min_repeats), max_repeats))
+    rounds = min_repeats  # (no warm-up: nothing to judge the budget by; a smoke run)
+    if warmup:
+        rounds = int(min(max(budget_s * len(fns) / max(first, 1e-9), min_repeats), max_repeats))
     times: dict[str, list[float]] = {name: [] for name in fns}
     results: dict[str, Any] = {}
     for _ in range(rounds):

@@ -42,7 +42,7 @@ from train_batting import make_basis, parse_widths  # noqa: E402
 from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
 from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
 from torch_api.design import build_design  # noqa: E402
-from torch_api.policies import ActionProbsPolicy, LinearQPolicy  # noqa: E402
+from torch_api.policies import ActionProbsPolicy, LinearQPolicy, sample_actions  # noqa: E402
 from torch_api.psi import PsiHat  # noqa: E402
 from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge  # noqa: E402
 
@@ -64,7 +64,7 @@ class SequencePolicy(ActionProbsPolicy):
         step = tensordict.get("step_count").squeeze(-1).clamp(max=len(self.sequence) - 1)
         greedy = torch.nn.functional.one_hot(self.sequence[step], N_ACTIONS).to(torch.float64)
         probs = (1.0 - self.epsilon) * greedy + self.epsilon / N_ACTIONS
-        tensordict.set(self.action_key, self.sample(probs))
+        tensordict.set(self.action_key, sample_actions(probs, self.streams))
         tensordict.set(self.probs_key, probs)
         return tensordict
 
@@ -90,7 +90,7 @@ class CockThenSwing(ActionProbsPolicy):
 
 def collect(policy, episodes: int, seed: int, end_at_hit: bool = False) -> object:
     env = BattingEnv(batch_size=episodes, seed=seed, end_at_hit=end_at_hit)
-    policy.generator = torch.Generator().manual_seed(seed + 1)
+    policy = policy.with_streams(torch.Generator().manual_seed(seed + 1))
     return collect_episodes(env, policy, num_episodes=episodes, num_steps=MAX_STEPS, rewarded=True)
 
 

@@ -103,6 +103,9 @@ def main() -> dict:
     parser.add_argument("--sizes", type=int, nargs="+", default=[16, 256, 2048])
     parser.add_argument("--budget", type=float, default=1.0, help="seconds per method and size")
     parser.add_argument("--repeats", type=int, default=3, help="least timed rounds per size")
+    parser.add_argument(
+        "--warmup", type=int, default=1, help="untimed calls first (0: a smoke run, no warm-up)"
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument(
         "--slow-us", type=float, default=500.0, help="Python work per row and step, slow env"
@@ -129,6 +132,7 @@ def main() -> dict:
                     "workers": lambda f=make_env, p=policy, m=episodes: via_workers(f, p, m),
                 },
                 budget_s=args.budget,
+                warmup=args.warmup,
                 min_repeats=args.repeats,
             )
             assert tuple(times["collector"].result.shape) == (episodes, STEPS)
@@ -157,6 +161,7 @@ def main() -> dict:
                 "workers": lambda: via_workers(make_env, policy, episodes),
             },
             budget_s=args.budget,
+            warmup=args.warmup,
             min_repeats=1,
         )
         rollout, workers = times["rollout"].median_ms, times["workers"].median_ms

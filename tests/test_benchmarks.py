@@ -25,7 +25,7 @@ BENCHMARKS = ROOT / "benchmarks"
         ),
         (
             ["bench_collection.py", "--sizes", "4", "--budget", "0.01", "--repeats", "1"]
-            + ["--slow-size", "4"],
+            + ["--warmup", "0", "--slow-size", "4"],
             "| slow chain walk (500 µs per row-step) | 4 |",
         ),
         (["bench_device.py", "--quick"], "| cpu | 4 | "),

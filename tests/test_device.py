@@ -86,10 +86,12 @@ def test_chain_walk_env_on_device_draws_the_cpu_walks(device):
         theta=torch.linspace(-1, 1, 12, dtype=torch.float64),
         epsilon=0.3,
     )
-    policy.generator = torch.Generator().manual_seed(0)
-    ours = env.rollout(8, policy=policy, break_when_any_done=False)
-    policy.generator = torch.Generator().manual_seed(0)
-    theirs = cpu.rollout(8, policy=policy, break_when_any_done=False)
+    ours = env.rollout(
+        8, policy=policy.with_streams(torch.Generator().manual_seed(0)), break_when_any_done=False
+    )
+    theirs = cpu.rollout(
+        8, policy=policy.with_streams(torch.Generator().manual_seed(0)), break_when_any_done=False
+    )
     assert ours["next", "observation"].device.type == torch.device(device).type
     assert torch.equal(ours["next", "observation"].cpu(), theirs["next", "observation"])
     assert torch.equal(ours["action"].cpu(), theirs["action"])

@@ -5,7 +5,9 @@ counts its reward measurements in a file written by the rewarded environment. Ru
 with SIGKILL at random events (inside reward-free collection, inside a rewarded slice, inside a
 store transaction between its rows and its commit, right after a commit with the bought rewards
 not yet fitted, between iterations) and, a few times, by the test at a random moment; each is
-resumed until it completes. Checked after every kill and at the end:
+resumed until it completes. The timed kills wait until the run has measured a random share of
+what it has left to buy, so they land inside a live run, however fast or loaded the machine is.
+Checked after every kill and at the end:
 
 * the rewarded episodes stored never decrease (none lost);
 * the measurements of a killed process exceed what it stored by at most one slice (the slice in
@@ -21,6 +23,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -32,6 +35,8 @@ KILLED = -signal.SIGKILL
 KILLS = {"all": 14, "episode": 8}  # event kills per mode (events per run: ~115 / ~160)
 EVENTS = {"all": 115, "episode": 160}
 TIMED_KILLS = 2  # per mode: SIGKILL from outside at a random moment
+MAX_ATTEMPTS = 80  # runs and resumptions per mode (the seeded kills need about 30)
+WAIT_FOR_PROGRESS = 120.0  # seconds a timed kill waits for the run to make its progress
 AIMED = [  # first kills of each mode: at these points for sure, then at random events
     "inside_a_transaction@4",  # a fresh run: the 1st row of the 1st slice written, no commit
     "after_put_episodes@1",  # rewards of iteration 1 bought and stored, θ_1 not fitted
@@ -60,12 +65,17 @@ class Server:
                 return int(line.split()[1])
         raise RuntimeError("the fault server ended: see its log")
 
-    def run(self, *args, kill_after: float | None = None) -> int:
+    def run(self, *args, kill_when: Callable[[], bool] | None = None) -> int:
+        """One run; with ``kill_when``, SIGKILL it from here as soon as that is true."""
         self.proc.stdin.write(" ".join(map(str, args)) + "\n")
         self.proc.stdin.flush()
         pid = self._answer("pid")
-        if kill_after is not None:
-            time.sleep(kill_after)
+        if kill_when is not None:
+            deadline = time.monotonic() + WAIT_FOR_PROGRESS
+            while not kill_when() and _alive(pid):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"run {pid} made no progress in {WAIT_FOR_PROGRESS} s")
+                time.sleep(0.002)
             try:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:  # already done and reaped
@@ -83,6 +93,14 @@ def server(tmp_path_factory):
     server = Server(tmp_path_factory.mktemp("server") / "server.log")
     yield server
     server.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def _count(measured: Path) -> int:
@@ -107,23 +125,29 @@ def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_m
     assert reference_measured == sum(SCHEDULE) * TRIALS * STEPS
     slice_size = TRIALS * STEPS * (max(SCHEDULE) if slice_mode == "all" else 1)
     rng = random.Random(14)
-    kills = timed = runs = 0
+    kills = timed = runs = attempts = 0
     measured_all = wasted_all = 0
     while kills < KILLS[slice_mode] or timed < TIMED_KILLS:
         runs += 1
         path, measured, result = (tmp_path / f"run{runs}.{x}" for x in ("db", "count", "json"))
         wasted = 0
         while True:
+            attempts += 1
+            assert attempts <= MAX_ATTEMPTS, (
+                f"{attempts - 1} runs and resumptions gave {kills} of {KILLS[slice_mode]} event "
+                f"kills and {timed} of {TIMED_KILLS} timed kills: kills keep missing the runs"
+            )
             stored_before, measured_before = _stored(path), _count(measured)
-            kill_at = kill_after = None
+            kill_at = kill_when = None
             if kills < len(AIMED):
                 kill_at = AIMED[kills]
             elif kills < KILLS[slice_mode]:
                 kill_at = rng.randint(1, EVENTS[slice_mode])
-            elif timed < TIMED_KILLS:
-                kill_after = rng.uniform(0.2, 1.0)
+            elif timed < TIMED_KILLS:  # once a random share of what is left is measured
+                share = rng.randint(1, max(1, reference_measured - stored_before - 1))
+                kill_when = lambda at=measured_before + share, m=measured: _count(m) >= at  # noqa: E731
             code = server.run(
-                path, measured, result, kill_at or -1, slice_mode, kill_after=kill_after
+                path, measured, result, kill_at or -1, slice_mode, kill_when=kill_when
             )
             stored_after, measured_after = _stored(path), _count(measured)
             assert stored_after >= stored_before, "stored rewards were lost"
@@ -132,7 +156,7 @@ def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_m
                 assert 0 <= lost <= slice_size, f"{lost} transitions measured and not kept"
                 wasted += lost
                 kills += kill_at is not None
-                timed += kill_after is not None
+                timed += kill_when is not None
                 continue
             assert code == 0, "the run failed: see the server log"
             assert lost == 0
@@ -148,7 +172,8 @@ def test_killed_runs_lose_no_reward_and_buy_none_twice(tmp_path, server, slice_m
         kinds |= set(kills_file.read_text().split("\n")) if kills_file.exists() else set()
     assert {"rewarded step", "inside a transaction", "after put_episodes"} <= kinds, kinds
     print(
-        f"{slice_mode}: {kills} + {timed} SIGKILLs in {runs} runs, all equal to the reference; "
+        f"{slice_mode}: {kills} + {timed} SIGKILLs in {runs} runs ({attempts} processes), all "
+        "equal to the reference; "
         f"{measured_all} rewarded transitions measured for {runs * reference_measured} kept, "
         f"{wasted_all} in slices cut by a kill"
     )

@@ -25,7 +25,7 @@ def _basis() -> GaussianActionBasis:
 
 def _episodes(policy, m: int, seed: int):
     env = ChainWalkEnv(batch_size=m, seed=seed)
-    policy.generator = torch.Generator().manual_seed(seed)
+    policy = policy.with_streams(torch.Generator().manual_seed(seed))
     return collect_episodes(env, policy, num_episodes=m, num_steps=10, rewarded=True)
 
 

@@ -8,6 +8,7 @@ import torch
 from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
+from torch_api.collect import collect_episodes
 from torch_api.iteration import ActivePolicyIteration
 from torch_api.multiprocess import collect_episodes_in_workers
 from torch_api.policies import LinearQPolicy
@@ -45,6 +46,41 @@ def test_workers_give_the_numbers_of_one_process():
     in_process, theta_process = _batting_run(workers=0)
     assert in_workers == in_process
     assert torch.equal(theta_workers, theta_process)
+
+
+def test_workers_draw_the_streams_they_are_given_and_leave_the_callers_alone():
+    """Per-trial streams travel with the trials: the workers' episodes equal one in-process
+    rollout's (on the chain walk, whose resets draw the initial states), and the caller's
+    generators are not moved on (nothing replays the workers' draws: a caller derives fresh
+    streams for every use)."""
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    policy = LinearQPolicy(
+        basis=basis, theta=torch.stack([torch.ones(12), torch.linspace(-1, 1, 12)]), epsilon=0.5
+    )
+
+    def streams():
+        return [torch.Generator().manual_seed(s) for s in (5, 6)]
+
+    given = streams()
+    before = [g.get_state() for g in given]
+    in_workers = collect_episodes_in_workers(
+        chain_env,
+        policy.with_streams(given),
+        num_episodes=3,
+        num_steps=4,
+        rewarded=True,
+        num_workers=2,
+        env_block_seeds=[7, 8],
+    )
+    assert all(torch.equal(g.get_state(), state) for g, state in zip(given, before, strict=True))
+    env = ChainWalkEnv(batch_size=6)
+    env.set_block_seeds([7, 8])
+    in_process = collect_episodes(
+        env, policy.with_streams(streams()), num_episodes=3, num_steps=4, rewarded=True
+    )
+    assert in_workers.shape == in_process.shape == (2, 3, 4)
+    for key in ("observation", "action", "sample_probs", "mask", ("next", "reward")):
+        assert torch.equal(in_workers[key], in_process[key]), key
 
 
 def test_workers_without_trial_streams_are_reproducible():

@@ -11,6 +11,7 @@ from torch_api.policies import (
     epsilon_greedy_probs,
     greedy_actions,
     greedy_probs,
+    sample_actions,
     softmax_probs,
 )
 
@@ -155,3 +156,50 @@ def test_tabular_policy_and_trial_major_rows():
         policy.action_probs(torch.zeros(3, 1))
     with pytest.raises(ValueError, match="rows must sum to 1"):
         TabularPolicy(table=torch.tensor([[0.5, 0.6]]), state_index=lambda obs: obs[..., 0].long())
+
+
+def test_sample_actions_draws_from_the_streams_it_is_given():
+    """One generator: the inverse CDF of its uniforms; one generator per block of rows: block
+    b's rows drawn from stream b alone, as if each block were sampled by itself."""
+    probs = torch.tensor([[0.2, 0.8], [0.5, 0.5], [0.9, 0.1]] * 2, dtype=torch.float64)
+    u = torch.rand(6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    expected = (u > probs[:, 0]).long()
+    assert torch.equal(sample_actions(probs, torch.Generator().manual_seed(0)), expected)
+    blocks = sample_actions(probs, [torch.Generator().manual_seed(s) for s in (1, 2, 3)])
+    alone = [
+        sample_actions(probs[2 * b : 2 * b + 2], torch.Generator().manual_seed(s))
+        for b, s in enumerate((1, 2, 3))
+    ]
+    assert torch.equal(blocks, torch.cat(alone))
+    with pytest.raises(ValueError, match="6 rows do not split into 4 equal blocks"):
+        sample_actions(probs, [torch.Generator() for _ in range(4)])
+    with pytest.raises(ValueError, match="streams must be"):
+        sample_actions(probs, 3)
+
+
+def test_streams_are_fixed_when_a_policy_is_made():
+    """Nobody sets a policy's random streams from outside: ``with_streams`` gives a new policy
+    (the original keeps its own), and the library's copies carry the streams along."""
+    from envs.chain_walk import ChainWalkEnv
+
+    theta = torch.stack([torch.linspace(-1, 1, 8), torch.linspace(1, -1, 8)])  # two trials
+    policy = LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.5)
+    with pytest.raises(AttributeError):
+        policy.block_generators = [torch.Generator(), torch.Generator()]
+    with pytest.raises(AttributeError):
+        policy.generator = torch.Generator()
+    streams = [torch.Generator().manual_seed(s) for s in (1, 2)]
+    seeded = policy.with_streams(streams)
+    assert policy.streams is None and seeded.block_generators == tuple(streams)
+    assert seeded.trial_slice(slice(1, 2)).block_generators == (streams[1],)
+    assert seeded.with_rule(epsilon=0.2).streams == seeded.to_device("cpu").streams
+    with pytest.raises(ValueError, match="streams must be"):
+        policy.with_streams([1, 2])
+
+    def rollout(policy):  # as a TorchRL module in env.rollout
+        env = ChainWalkEnv(batch_size=4, seed=0)
+        return env.rollout(5, policy=policy, break_when_any_done=False)
+
+    first = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
+    again = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
+    assert torch.equal(first["action"], again["action"])

@@ -165,7 +165,6 @@ def test_a_standalone_selector_names_what_it_lacks():
         lam=LAM,
         fit="brm",
         device=None,
-        generator=None,
     )
     assert type(bound._collection).__name__ == "RolloutCollection"
     assert bound.collect([pi, pi.with_rule(epsilon=1.0)], num_episodes=3).shape == (2, 2, 3, 5)

@@ -121,13 +121,14 @@ def test_exploration_types_and_the_global_generator():
 
 @pytest.mark.parametrize("factory", [cartpole_rows, cartpole_processes], ids=["serial", "parallel"])
 def test_batched_env_factories(factory):
+    parallel = factory is cartpole_processes
     api = ActivePolicyIteration(  # two trials: the env is built per batch size by the factory
         env=factory,
         basis=cartpole_basis(),
-        schedule=(2,),
+        schedule=(1,) if parallel else (2,),  # ParallelEnv: T·M = 2 worker processes
         num_steps=8,
         gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1) if factory is cartpole_rows else None,
+        selector=None if parallel else SamplingPolicySelector(num_repeats=1),
         candidate_offsets=(0.0, 0.5),
         num_trials=2,
         seed=0,
@@ -187,19 +188,26 @@ def _short_cartpole():
     return TransformedEnv(cartpole(), StepCounter(max_steps=6))
 
 
+def _collector_batches(env, policy, *, frames_per_batch, total_frames, **options):
+    """Every batch a real TorchRL ``Collector`` yields (TorchRL's defaults but for ``options``)."""
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=frames_per_batch,
+        total_frames=total_frames,
+        auto_register_policy_transforms=False,
+        **options,
+    )
+    batches = [batch.clone() for batch in collector]
+    collector.shutdown()
+    return batches
+
+
 def test_flat_collector_batches_join_a_trajectory_cut_at_the_batch_end():
     env = _short_cartpole()
     env.set_seed(0)
     torch.manual_seed(0)
-    collector = Collector(
-        env,
-        _collector_policy(env),
-        frames_per_batch=8,
-        total_frames=16,
-        auto_register_policy_transforms=False,
-    )
-    batches = [batch.clone() for batch in collector]
-    collector.shutdown()
+    batches = _collector_batches(env, _collector_policy(env), frames_per_batch=8, total_frames=16)
     ids = [set(b["collector", "traj_ids"].tolist()) for b in batches]
     assert ids[0] & ids[1], "the test needs a trajectory spanning both batches"
     pieces = EpisodeBuffer(rewarded=True, capacity=10)
@@ -222,16 +230,9 @@ def test_flat_collector_batches_join_a_trajectory_cut_at_the_batch_end():
 def test_split_trajs_batch_in_buffer_and_as_earlier_episodes():
     env = _short_cartpole()
     env.set_seed(1)
-    collector = Collector(
-        env,
-        _collector_policy(env),
-        frames_per_batch=20,
-        total_frames=20,
-        split_trajs=True,
-        auto_register_policy_transforms=False,
+    (batch,) = _collector_batches(
+        env, _collector_policy(env), frames_per_batch=20, total_frames=20, split_trajs=True
     )
-    batch = next(iter(collector)).clone()
-    collector.shutdown()
     assert batch["next", "terminated"].shape[-1] == 1  # TorchRL's trailing singleton dim
     buffer = EpisodeBuffer(rewarded=True, capacity=10)
     buffer.extend(batch)
@@ -295,11 +296,7 @@ def test_probabilistic_actor_collects_and_is_a_candidate():
 def test_warm_start_from_collector_batches_of_an_actor():
     env = _short_cartpole()
     actor = _actor(env)
-    collector = Collector(
-        env, actor, frames_per_batch=8, total_frames=16, auto_register_policy_transforms=False
-    )
-    batches = [batch.clone() for batch in collector]
-    collector.shutdown()
+    batches = _collector_batches(env, actor, frames_per_batch=8, total_frames=16)
     api = ActivePolicyIteration(
         env=cartpole(),
         basis=cartpole_basis(),

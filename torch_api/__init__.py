@@ -8,7 +8,8 @@ The pure tensor functions (one concept a module) and the components built on the
 
 What a user extends, each with a runnable example in its docstring (docs/architecture.md):
 
-* a policy family: subclass :class:`ActionProbsPolicy` (implement ``_action_probs``);
+* a policy family: subclass :class:`ActionProbsPolicy` (implement ``_action_probs``); it is
+  pure, and :func:`sample_actions` draws from the random streams it is given;
 * an active-learning criterion: a function with the signature :data:`Criterion`,
   ``(PooledMoments, lam) -> [..., K]`` (the default is :func:`j_eq46`, J of eq. 46);
 * an environment with per-trial random streams: the :class:`BlockSeeded` protocol
@@ -35,6 +36,7 @@ from torch_api.policies import (
     TabularPolicy,
     epsilon_greedy_probs,
     greedy_actions,
+    sample_actions,
     softmax_probs,
 )
 from torch_api.psi import PsiHat, psi_hat, state_action_groups
@@ -78,6 +80,7 @@ __all__ = [
     "per_decision_weights",
     "pooled_moments",
     "psi_hat",
+    "sample_actions",
     "seed_env",
     "softmax_probs",
     "state_action_groups",

@@ -25,17 +25,8 @@ class RewardBuying:
     methods read and set the loop's attributes)."""
 
     def _seed_iteration(self, iteration: int, num_episodes: int) -> None:
-        """Re-seed the policies' streams and the environments of iteration l."""
+        """Re-seed the environments of iteration l (the policies' streams are derived per use)."""
         trials = math.prod(self.trial_dims)
-        self.generator.manual_seed(self.streams.run_seed(iteration, "policy"))
-        self.reward_free_generator.manual_seed(
-            self.streams.run_seed(iteration, "reward_free_policy")
-        )
-        if self.trial_seeds is not None:
-            self.policy.block_generators = self.streams.block_generators(iteration, "policy")
-            self._reward_free_blocks = self.streams.block_generators(
-                iteration, "reward_free_policy"
-            )
         env = self._env_for(trials * num_episodes)
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
@@ -113,11 +104,7 @@ class RewardBuying:
         return {k: v.tolist() if isinstance(v, torch.Tensor) else v for k, v in selection.items()}
 
     def _seed_slice(self, l_now: int, episode: int, rows: int) -> None:
-        """Re-seed the policy stream and the rewarded env for episode m of iteration l."""
-        seed, blocks = self.streams.slice_seeds(l_now, episode, "policy")
-        self.generator.manual_seed(seed)
-        if blocks is not None:
-            self.policy.block_generators = [torch.Generator().manual_seed(s) for s in blocks]
+        """Re-seed the rewarded env for episode m of iteration l."""
         seed_env(self._env_for(rows), *self.streams.slice_seeds(l_now, episode, "rewarded_env"))
 
     def _buy_slice(self, l_now: int, episodes: list[int], *, reseed: bool) -> None:
@@ -130,13 +117,18 @@ class RewardBuying:
         rows = trials * len(episodes)
         if reseed:
             self._seed_slice(l_now, episodes[0], rows)
+        streams = (  # the policy's sampling streams, fresh: the iteration's or the slice's
+            self.streams.slice_generators(l_now, episodes[0], "policy")
+            if reseed
+            else self.streams.generators(l_now, "policy")
+        )
         selection = self._selection
         chosen = selection["chosen"]
         where = f" (stored in {self.checkpoint_path})" if self.checkpoint_path else ""
         try:
             bought = self._collect(
                 self._env_for(rows),
-                self._with_rule(selection["sampling_rule"]),  # one candidate per trial
+                self._with_rule(selection["sampling_rule"]).with_streams(streams),
                 num_episodes=len(episodes),
                 num_steps=self.num_steps,
                 rewarded=True,

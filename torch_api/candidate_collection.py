@@ -48,7 +48,8 @@ class PolicyStack(ActionProbsPolicy):
     Args:
         policies: K policies with ``action_probs``.
         episodes_per_policy: M, consecutive rows per policy.
-        generator: random stream for sampling.
+        generator: random stream for sampling (or ``streams=``: one generator per block of
+            rows, e.g. per trial; see :func:`~torch_api.policy_base.sample_actions`).
     """
 
     def __init__(self, policies: Sequence, *, episodes_per_policy: int, generator=None, **io):
@@ -71,22 +72,19 @@ class PolicyStack(ActionProbsPolicy):
 
     def trial_slice(self, trials: slice) -> PolicyStack:
         """The stack of some trials only (each policy sliced; the per-trial streams too)."""
-        return self._copy_streams(
-            PolicyStack(
-                [p.trial_slice(trials) for p in self.policies],
-                episodes_per_policy=self.episodes_per_policy,
-                **self._io_kwargs(),
-            ),
-            trials,
+        return PolicyStack(
+            [p.trial_slice(trials) for p in self.policies],
+            episodes_per_policy=self.episodes_per_policy,
+            **self._io_kwargs(trials),
         )
 
 
 def _stack(candidates: Sequence, m: int, generator) -> PolicyStack:
-    """The candidates as one policy over ``[..., K, M]`` rows, drawing from ``generator`` (or
-    the first candidate's streams)."""
-    stack = PolicyStack(candidates, episodes_per_policy=m, generator=generator)
-    stack.block_generators = getattr(candidates[0], "block_generators", None)
-    return stack
+    """The candidates as one policy over ``[..., K, M]`` rows, drawing from the first
+    candidate's per-trial streams, else from ``generator`` or the first candidate's stream."""
+    blocks = candidates[0].block_generators  # one stream per trial, else one for all
+    streams = blocks if blocks is not None else generator or candidates[0].generator
+    return PolicyStack(candidates, episodes_per_policy=m, streams=streams)
 
 
 def _tag_candidates(episodes: TensorDictBase, shape: tuple, k: int) -> TensorDictBase:

@@ -137,8 +137,9 @@ def make_family(
 
 class CandidatePolicies:
     """The policies of :class:`~torch_api.iteration.ActivePolicyIteration` built from its
-    family (a mixin: it reads the loop's θ, basis, generators and streams): pi_l, the K
-    candidates of the coming iteration, and the evaluation policy with streams of its own."""
+    family (a mixin: it reads the loop's θ, basis and streams): pi_l, the K candidates of the
+    coming iteration (pure: sampling streams are given per use with ``with_streams``), and the
+    evaluation policy with streams of its own."""
 
     def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
         """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""
@@ -146,7 +147,6 @@ class CandidatePolicies:
         return LinearQPolicy(
             basis=self.basis,
             theta=theta,
-            generator=self.generator,
             tie_break=self.tie_break,
             action_spec=self._action_encoding,
             **rule,
@@ -168,13 +168,11 @@ class CandidatePolicies:
         return [self._with_rule(rule) for rule in self._candidate_rules()]
 
     def _reward_free_candidates(self) -> list[LinearQPolicy]:
-        """The candidates drawing from the reward-free streams, not from pi_l's (which the
-        rewarded episodes use): AL's selection then leaves the rewarded draws as PL's."""
-        candidates = self.candidates()
-        for candidate in candidates:
-            candidate.generator = self.reward_free_generator
-            candidate.block_generators = self._reward_free_blocks
-        return candidates
+        """The candidates drawing from the reward-free streams of the coming iteration (one
+        for all K, shared), not from pi_l's (which the rewarded episodes use): AL's selection
+        then leaves the rewarded draws as PL's."""
+        streams = self.streams.generators(self.iteration + 1, "reward_free_policy")
+        return [candidate.with_streams(streams) for candidate in self.candidates()]
 
     def block_seeds(self, iteration: int, stream: str) -> list[int]:
         """Per-trial seeds of one stream of iteration l (``trial_seeds`` runs only)."""
@@ -187,8 +185,4 @@ class CandidatePolicies:
         uninterrupted one would.
         """
         seed = self.streams.run_seed(iteration, "evaluation")
-        policy = self.policy.with_rule(**self.policy._rule())
-        policy.generator = torch.Generator().manual_seed(seed)
-        if self.trial_seeds is not None:
-            policy.block_generators = self.streams.block_generators(iteration, "evaluation")
-        return policy, seed
+        return self.policy.with_streams(self.streams.generators(iteration, "evaluation")), seed

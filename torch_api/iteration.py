@@ -84,9 +84,10 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         selector: the :class:`~torch_api.selector.SamplingPolicySelector` choosing each
             iteration's sampling policy (active learning), or None (passive: pi_l samples).
             It brings what is its own (its reward-free env or collector, Z = ``num_repeats``,
-            worker processes, criterion); the loop binds it to its psi_hat, N, λ, fit, device
-            and reward-free streams (:meth:`~torch_api.selector.SamplingPolicySelector.bind`;
-            the object passed is left as it is), and to ``env`` where it has none. E.g.
+            worker processes, criterion); the loop binds it to its psi_hat, N, λ, fit and
+            device (:meth:`~torch_api.selector.SamplingPolicySelector.bind`; the object passed
+            is left as it is) and to ``env`` where it has none, and gives it candidates that
+            draw from the loop's reward-free streams. E.g.
             ``selector=SamplingPolicySelector(env=lambda rows: make_env(rows), num_repeats=5)``
             (an env whose batch is ``T·Z·K·M_l`` rolls out once).
         lam: λ > 0.
@@ -266,10 +267,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
-        self.generator = torch.Generator().manual_seed(self.seed)
-        # the reward-free rollouts' own sampling streams (re-seeded every iteration)
-        self.reward_free_generator = torch.Generator().manual_seed(self.seed)
-        self._reward_free_blocks: list[torch.Generator] | None = None
         self._initial_theta = theta = _initial_theta(initial_theta, basis.num_features)
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.rewarded_slice = rewarded_slice
@@ -293,7 +290,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
                 lam=self.lam,
                 fit=fit,
                 device=self.device,
-                generator=self.reward_free_generator,
             )
         repeats = 0 if selector is None else selector.num_repeats
         self.reward_free = EpisodeBuffer(

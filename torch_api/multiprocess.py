@@ -5,12 +5,15 @@ Gymnasium env stepped row by row), the rows of one collection can be spread over
 processes, each stepping an environment of its own share of the rows. The rows are split in
 whole blocks (trials): worker w gets trials ``a_w … b_w - 1``, the policy restricted to them
 (``trial_slice``) and, where the policy and the environment keep one random stream per trial
-(``block_generators``, ``set_block_seeds``), exactly those trials' streams. Then the episodes
-equal those of one in-process ``env.rollout`` bit for bit, and the parent's streams are moved on
-by the draws the workers made, as if it had sampled them itself.
+(the policy's ``streams``, the env's ``set_block_seeds``), exactly those trials' streams, sent
+with the policy. Then the episodes equal those of one in-process ``env.rollout`` bit for bit.
+The workers draw from copies: the caller's generators are left as they were, and nothing
+replays the workers' draws. A caller therefore derives fresh streams for every collection, as
+the loop does (:meth:`~torch_api.streams.TrialStreams.generators`: one stream per (seed,
+trial, iteration, role)).
 
-Without per-trial streams each worker gets streams seeded from the parent's: reproducible, but
-not the numbers of one process.
+Without per-trial streams each worker gets a generator seeded from the policy's (one draw per
+worker): reproducible, but not the numbers of one process.
 
 Worth it only when collection takes much longer than starting W processes (seconds: each
 imports torch, TorchRL and the environment); an environment that already steps its rows in
@@ -46,16 +49,16 @@ _SEED_RANGE = 2**62
 class _WorkerPolicy:
     """Picklable factory of one worker's policy: its trials' slice and random streams."""
 
-    def __init__(self, policy, seed: int) -> None:
-        self.policy = policy  # pickled with its generators' states
-        self.seed = seed
+    def __init__(self, policy, seed: int | None) -> None:
+        self.policy = policy  # pickled with its streams' states (a copy: the caller's stay)
+        self.seed = seed  # the worker's own stream where the policy has none per trial
 
     def __call__(self):
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         torch.set_num_threads(1)
         policy = self.policy
-        if policy.block_generators is None:
-            policy.generator = torch.Generator().manual_seed(self.seed)
+        if self.seed is not None:
+            policy = policy.with_streams(torch.Generator().manual_seed(self.seed))
         # Declaring the outputs spares the collector a probing call of the policy at start-up,
         # which would draw from the streams and shift every action by one step.
         encoding = policy.action_encoding  # the env's, set by collect_episodes_in_workers
@@ -115,6 +118,7 @@ def collect_episodes_in_workers(
         make_env: a picklable callable ``rows -> env`` (a top-level function or class, or a
             ``functools.partial`` of one), called in each worker with its share of the rows.
         policy: as for ``collect_episodes``; it must have ``trial_slice`` when ``blocks > 1``.
+            Its streams are read, not moved on (the workers draw from copies of them).
         num_episodes: M per trial (rows in all when the policy has no trial dims).
         num_steps: N.
         rewarded: keep the rewards.
@@ -158,9 +162,9 @@ def collect_episodes_in_workers(
         piece = policy
         if blocks > 1 and (trial_dims or streams is not None):
             piece = policy.trial_slice(slice(part.start, part.stop))
-        # one stream per trial: the worker continues its trials' streams; else a fresh seed
+        # one stream per trial: the worker draws from its trials' streams; else a fresh seed
         seed = (
-            0
+            None
             if streams is not None
             else int(torch.randint(_SEED_RANGE, (), generator=policy.generator))
         )
@@ -172,7 +176,9 @@ def collect_episodes_in_workers(
         policy_factory=policy_factories,
         frames_per_batch=[len(part) * per_block * num_steps for part in parts],
         total_frames=rows * num_steps,
-        reset_at_each_iter=True,
+        # one batch: the collector's first reset is the env's first after seeding, as in
+        # env.rollout (a second reset would draw other initial states from the env's streams)
+        reset_at_each_iter=False,
         cat_results=0,
         trust_policy=True,
     )
@@ -181,10 +187,6 @@ def collect_episodes_in_workers(
     finally:
         collector.shutdown()
     batch = batch.reshape(rows, num_steps)
-    if streams is not None:  # the workers drew from copies: move the parent's streams on
-        for generator in streams:  # ActionProbsPolicy.sample: one draw per row and step
-            for _ in range(num_steps):
-                torch.rand(rows // len(streams), generator=generator, dtype=torch.float64)
     episodes = _episodes_from_rollout(batch, rewarded=rewarded)
     episodes = episodes.reshape(*trial_dims, num_episodes, num_steps)
     episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)

@@ -2,10 +2,11 @@
 
 The pure functions that turn Q-values ``[..., A]`` into action probabilities live in
 :mod:`torch_api.improvement`, the base class :class:`ActionProbsPolicy` (the one to subclass for
-a new policy family) in :mod:`torch_api.policy_base`; both are re-exported here. Here:
-:class:`LinearQPolicy`, a TensorDict module that samples an action and records the whole
-distribution (``sample_probs``) so that importance weights can be computed later against any
-other policy, and :class:`TabularPolicy`.
+a new policy family) and the sampling function :func:`sample_actions` (which takes its random
+streams as an argument) in :mod:`torch_api.policy_base`; all are re-exported here. Here:
+:class:`LinearQPolicy`, a TensorDict module that samples an action from the streams it was made
+with and records the whole distribution (``sample_probs``) so that importance weights can be
+computed later against any other policy, and :class:`TabularPolicy`.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from torch_api.improvement import (
     linear_q_values,
     softmax_probs,
 )
-from torch_api.policy_base import ActionProbsPolicy
+from torch_api.policy_base import ActionProbsPolicy, Streams, sample_actions
 
 __all__ = [
     "ActionProbsPolicy",
@@ -39,6 +40,7 @@ __all__ = [
     "greedy_mask",
     "greedy_probs",
     "linear_q_values",
+    "sample_actions",
     "softmax_probs",
 ]
 
@@ -50,7 +52,7 @@ class TabularPolicy(ActionProbsPolicy):
         table: ``[*T, S, A]`` probabilities, rows summing to 1 (``*T``: e.g. one table per
             environment of a batch, prefixing the observation dims).
         state_index: maps an observation ``[..., d]`` to its row index ``[...]`` (long).
-        one_hot, generator, observation_key, action_key, probs_key: as in
+        one_hot, generator, streams, observation_key, action_key, probs_key: as in
             :class:`ActionProbsPolicy`.
 
     Example:
@@ -76,11 +78,8 @@ class TabularPolicy(ActionProbsPolicy):
 
     def trial_slice(self, trials: slice) -> TabularPolicy:
         """The policy of some trials only (the first parameter dim sliced)."""
-        return self._copy_streams(
-            TabularPolicy(
-                table=self.table[trials], state_index=self.state_index, **self._io_kwargs()
-            ),
-            trials,
+        return TabularPolicy(
+            table=self.table[trials], state_index=self.state_index, **self._io_kwargs(trials)
         )
 
     def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
@@ -122,7 +121,7 @@ class LinearQPolicy(ActionProbsPolicy):
     Reads ``observation`` and writes ``action`` (in the encoding of ``action_spec``: an index,
     or one-hot) and ``sample_probs`` (the full distribution ``[..., A]``, float64) so that the
     episode can be importance-weighted later. Sampling follows TorchRL's exploration type and
-    uses the policy's own ``torch.Generator`` if given (see :class:`ActionProbsPolicy`).
+    uses the random streams the policy was made with, if any (see :class:`ActionProbsPolicy`).
 
     Args:
         basis: module with ``phi_all(obs [..., d]) -> [..., A, B]`` and ``num_features``.
@@ -141,6 +140,8 @@ class LinearQPolicy(ActionProbsPolicy):
             encoding (one-hot or index) and dtype. :func:`~torch_api.data.collect_episodes`
             sets it from the env it collects on.
         generator: random stream for sampling (default: torch's global generator).
+        streams: instead of ``generator``, one generator per trial (``[*T]`` flattened) or
+            per equal block of rows (see :func:`sample_actions`).
         observation_key, action_key, probs_key: tensordict keys.
 
     Example:
@@ -165,6 +166,7 @@ class LinearQPolicy(ActionProbsPolicy):
         one_hot: bool = False,
         action_spec=None,
         generator: torch.Generator | None = None,
+        streams: Streams = None,
         observation_key="observation",
         action_key="action",
         probs_key="sample_probs",
@@ -194,6 +196,7 @@ class LinearQPolicy(ActionProbsPolicy):
             one_hot=one_hot,
             action_spec=action_spec,
             generator=generator,
+            streams=streams,
             observation_key=observation_key,
             action_key=action_key,
             probs_key=probs_key,
@@ -222,15 +225,12 @@ class LinearQPolicy(ActionProbsPolicy):
     def trial_slice(self, trials: slice) -> LinearQPolicy:
         """The policy of some trials only (θ's first dim, and a per-trial ε or β, sliced)."""
         rule = {k: v[trials] if v.ndim else v for k, v in self._rule().items()}
-        return self._copy_streams(
-            LinearQPolicy(
-                basis=self.basis,
-                theta=self.theta[trials],
-                **rule,
-                tie_break=self.tie_break,
-                **self._io_kwargs(),
-            ),
-            trials,
+        return LinearQPolicy(
+            basis=self.basis,
+            theta=self.theta[trials],
+            **rule,
+            tie_break=self.tie_break,
+            **self._io_kwargs(trials),
         )
 
     def _action_probs(self, obs: torch.Tensor) -> torch.Tensor:
@@ -245,14 +245,12 @@ class LinearQPolicy(ActionProbsPolicy):
     def to_device(self, device) -> LinearQPolicy:
         """A copy whose θ lives on ``device`` (the sampling generator stays where it is)."""
         rule = self._rule()
-        return self._copy_streams(
-            LinearQPolicy(
-                basis=self.basis,
-                theta=self.theta.to(device),
-                **rule,
-                tie_break=self.tie_break,
-                **self._io_kwargs(),
-            )
+        return LinearQPolicy(
+            basis=self.basis,
+            theta=self.theta.to(device),
+            **rule,
+            tie_break=self.tie_break,
+            **self._io_kwargs(),
         )
 
     def with_rule(
@@ -262,13 +260,11 @@ class LinearQPolicy(ActionProbsPolicy):
         beta: float | torch.Tensor | None = None,
     ) -> LinearQPolicy:
         """The same θ and basis under another rule (e.g. the candidates of eq. 59)."""
-        return self._copy_streams(
-            LinearQPolicy(
-                basis=self.basis,
-                theta=self.theta,
-                epsilon=epsilon,
-                beta=beta,
-                tie_break=self.tie_break,
-                **self._io_kwargs(),
-            )
+        return LinearQPolicy(
+            basis=self.basis,
+            theta=self.theta,
+            epsilon=epsilon,
+            beta=beta,
+            tie_break=self.tie_break,
+            **self._io_kwargs(),
         )

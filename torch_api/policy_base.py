@@ -1,16 +1,21 @@
 """The base of the library's policies, the one a user extends: :class:`ActionProbsPolicy`.
 
-A policy of this library is a TensorDict module that gives action probabilities of observations
-(``action_probs``), draws an action from them with its own random stream(s), writes it in the
-env's action encoding and records the whole distribution (``sample_probs``), so that importance
-weights can later be computed against any other policy. A new policy family subclasses it and
-implements ``_action_probs(obs) -> [..., A]``.
+A policy of this library is pure: it gives action probabilities of observations
+(``action_probs``). Drawing an action from them is a function of its own,
+:func:`sample_actions`, that takes its random streams as an argument. Where the policy must act
+as a TorchRL module (``policy(td)`` in ``env.rollout`` or a ``Collector``), it draws from the
+streams it was made with (``with_streams`` gives a new policy with others; nothing sets them
+afterwards), writes the action in the env's encoding and records the whole distribution
+(``sample_probs``), so that importance weights can later be computed against any other
+policy. A new policy family subclasses :class:`ActionProbsPolicy` and implements
+``_action_probs(obs) -> [..., A]``.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -19,7 +24,64 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from torch_api.actions import ActionEncoding
 
-__all__ = ["ActionProbsPolicy", "param_dims_of"]
+__all__ = ["ActionProbsPolicy", "Streams", "param_dims_of", "sample_actions"]
+
+Streams = torch.Generator | Sequence[torch.Generator] | None
+"""Random streams of sampling: torch's global generator (None), one generator, or one
+generator per equal, consecutive block of rows (e.g. one per trial)."""
+
+
+def _check_streams(streams) -> torch.Generator | tuple[torch.Generator, ...] | None:
+    if streams is None or isinstance(streams, torch.Generator):
+        return streams
+    if (
+        isinstance(streams, Sequence)
+        and streams
+        and all(isinstance(g, torch.Generator) for g in streams)
+    ):
+        return tuple(streams)
+    raise ValueError(
+        "streams must be None, a torch.Generator or a non-empty sequence of them (one per "
+        f"block of rows), got {streams!r}"
+    )
+
+
+def sample_actions(probs: torch.Tensor, streams: Streams = None) -> torch.Tensor:
+    """Draw one action index per row: ``probs [..., A] -> [...]`` (long), by the inverse CDF.
+
+    Args:
+        probs: action probabilities ``[..., A]``.
+        streams: None (torch's global generator), one ``torch.Generator``, or one generator per
+            equal, consecutive block of rows (the leading dims flattened, trial-major): block
+            ``b`` is drawn from ``streams[b]`` alone, so a batch of T trials draws exactly what
+            T separate draws would.
+
+    Example:
+        >>> probs = torch.tensor([[0.5, 0.5]] * 4, dtype=torch.float64)
+        >>> streams = [torch.Generator().manual_seed(s) for s in (0, 1)]
+        >>> together = sample_actions(probs, streams)
+        >>> alone = [sample_actions(probs[:2], torch.Generator().manual_seed(s)) for s in (0, 1)]
+        >>> torch.equal(together, torch.cat(alone))
+        True
+    """
+    streams = _check_streams(streams)
+    shape = probs.shape[:-1]
+    if streams is None or isinstance(streams, torch.Generator):
+        device = "cpu" if streams is None else streams.device
+        uniform = torch.rand(shape, generator=streams, dtype=torch.float64, device=device)
+    else:
+        rows, blocks = shape.numel(), len(streams)
+        if rows % blocks:
+            raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
+        uniform = torch.cat(
+            [
+                torch.rand(rows // blocks, generator=g, dtype=torch.float64, device=g.device)
+                for g in streams
+            ]
+        ).reshape(shape)
+    uniform = uniform.to(probs.device)
+    cdf = probs.cumsum(-1)
+    return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
 
 
 def param_dims_of(policy) -> tuple[int, ...]:
@@ -47,9 +109,12 @@ class ActionProbsPolicy(TensorDictModuleBase):
     ``Collector``'s default) or with no exploration type set, the action is sampled from
     ``pi(·|s)``; under ``DETERMINISTIC``, ``MODE`` (or ``MEAN``) it is the mode of ``pi(·|s)``
     (the greedy action; the lowest index among equal probabilities), and ``sample_probs`` is
-    then that one-hot distribution, the one the action was really drawn from. The draw uses the
-    policy's ``generator`` if it has one, else torch's global generator (so ``torch.manual_seed``
-    governs an unseeded policy, as it does TorchRL's actors).
+    then that one-hot distribution, the one the action was really drawn from. The draw
+    (:func:`sample_actions`) uses the streams the policy was made with (``generator=`` or
+    ``streams=``, or :meth:`with_streams`), else torch's global generator (so
+    ``torch.manual_seed`` governs an unseeded policy, as it does TorchRL's actors). The streams
+    are fixed when the policy is made: ``generator``, ``block_generators`` and ``streams`` are
+    read-only.
 
     A new policy family subclasses it and implements ``_action_probs`` (an extension point):
 
@@ -60,7 +125,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
         ...         probs = torch.zeros(*obs.shape[:-1], self.num_actions, dtype=torch.float64)
         ...         probs[..., -1] = 1.0
         ...         return probs
-        >>> policy = AlwaysRight(num_actions=2, generator=torch.Generator().manual_seed(0))
+        >>> policy = AlwaysRight(num_actions=2).with_streams(torch.Generator().manual_seed(0))
         >>> td = policy(TensorDict({"observation": torch.zeros(3, 1)}, batch_size=[3]))
         >>> td["action"].tolist(), td["sample_probs"].shape
         ([1, 1, 1], torch.Size([3, 2]))
@@ -73,31 +138,56 @@ class ActionProbsPolicy(TensorDictModuleBase):
         one_hot: bool = False,
         action_spec=None,
         generator: torch.Generator | None = None,
+        streams: Streams = None,
         observation_key="observation",
         action_key="action",
         probs_key="sample_probs",
     ) -> None:
         super().__init__()
+        if generator is not None and streams is not None:
+            raise ValueError("give the random streams once: generator or streams, not both")
         self.num_actions = int(num_actions)
         self.one_hot = one_hot
         self.action_encoding = _encoding(action_spec, self.num_actions, one_hot)
-        self.generator = generator
+        self._streams = _check_streams(generator if streams is None else streams)
         self.observation_key = observation_key
         self.action_key = action_key
         self.probs_key = probs_key
         self.in_keys = [observation_key]
         self.out_keys = [action_key, probs_key]
 
-    def _copy_streams(self, other: ActionProbsPolicy, trials: slice | None = None):
-        blocks = self.block_generators
-        other.block_generators = blocks if blocks is None or trials is None else blocks[trials]
+    @property
+    def streams(self) -> torch.Generator | tuple[torch.Generator, ...] | None:
+        """The random streams the policy samples from (see :data:`Streams`); read-only."""
+        return self._streams
+
+    @property
+    def generator(self) -> torch.Generator | None:
+        """The policy's one random stream, or None (global generator, or one per block)."""
+        return self._streams if isinstance(self._streams, torch.Generator) else None
+
+    @property
+    def block_generators(self) -> tuple[torch.Generator, ...] | None:
+        """One random stream per equal, consecutive block of rows (e.g. per trial), or None."""
+        return None if isinstance(self._streams, torch.Generator) else self._streams
+
+    def with_streams(self, streams: Streams) -> ActionProbsPolicy:
+        """The same policy (parameters, rule, encoding) sampling from ``streams``: one
+        generator, or one per block of rows (e.g. per trial); the original keeps its own."""
+        other = copy.copy(self)  # shares θ and the basis
+        other._streams = _check_streams(streams)
         return other
 
-    def _io_kwargs(self) -> dict:
+    def _io_kwargs(self, trials: slice | None = None) -> dict:
+        """The keyword arguments that make a copy of this policy with the same I/O and
+        streams (of ``trials`` only, where the streams are one per trial)."""
+        streams = self._streams
+        if trials is not None and isinstance(streams, tuple):
+            streams = streams[trials]
         return {
             "one_hot": self.one_hot,
             "action_spec": self.action_encoding,
-            "generator": self.generator,
+            "streams": streams,
             "observation_key": self.observation_key,
             "action_key": self.action_key,
             "probs_key": self.probs_key,
@@ -131,35 +221,6 @@ class ActionProbsPolicy(TensorDictModuleBase):
         probs = self._action_probs(grid)
         return probs.reshape(*obs.shape[:-1], probs.shape[-1])
 
-    block_generators: list[torch.Generator] | None = None
-    """One random stream per equal, consecutive block of rows (e.g. per trial), or None."""
-
-    def sample(self, probs: torch.Tensor) -> torch.Tensor:
-        """Draw action indices ``[...]`` from ``probs [..., A]`` with the policy's generator.
-
-        With ``block_generators`` set, the rows (flattened leading dims, trial-major) are split
-        into equal blocks, each drawn from its own generator.
-        """
-        shape = probs.shape[:-1]
-        if self.block_generators is None:
-            device = "cpu" if self.generator is None else self.generator.device
-            uniform = torch.rand(
-                shape, generator=self.generator, dtype=torch.float64, device=device
-            )
-        else:
-            rows, blocks = shape.numel(), len(self.block_generators)
-            if rows % blocks:
-                raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
-            uniform = torch.cat(
-                [
-                    torch.rand(rows // blocks, generator=g, dtype=torch.float64, device=g.device)
-                    for g in self.block_generators
-                ]
-            ).reshape(shape)
-        uniform = uniform.to(probs.device)
-        cdf = probs.cumsum(-1)
-        return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
-
     def with_action_spec(self, action_spec) -> ActionProbsPolicy:
         """The same policy (same parameters and random streams) writing actions in the encoding
         of ``action_spec`` (a TorchRL spec or an :class:`~torch_api.actions.ActionEncoding`)."""
@@ -180,7 +241,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
             index = probs.argmax(-1)
             probs = torch.nn.functional.one_hot(index, probs.shape[-1]).to(probs.dtype)
         else:
-            index = self.sample(probs)
+            index = sample_actions(probs, self._streams)
         tensordict.set(self.action_key, self.action_encoding.encode(index))
         tensordict.set(self.probs_key, probs)
         return tensordict

@@ -197,14 +197,14 @@ class SamplingPolicySelector:
         lam: float,
         fit: str,
         device: torch.device | str | None,
-        generator: torch.Generator | None,
     ) -> SamplingPolicySelector:
         """This selector with a loop's settings: a new selector, this one left as it is.
 
         :class:`~torch_api.iteration.ActivePolicyIteration` binds the selector it is given to
-        its psi_hat (basis, γ), N, λ, fit, device and reward-free random streams; ``env`` is
-        used where this selector has none. Those settings are the loop's: a selector given
-        any of them is refused. M is given per call (:meth:`select`'s ``num_episodes``).
+        its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
+        none. The sampling streams are the loop's too (its candidates bring its reward-free
+        streams): a selector given any of these settings, or a ``generator``, is refused. M is
+        given per call (:meth:`select`'s ``num_episodes``).
         """
         given = sorted(k for k, v in self._loop_settings.items() if v is not None)
         if given:
@@ -218,7 +218,6 @@ class SamplingPolicySelector:
             num_steps=num_steps,
             num_repeats=self.num_repeats,
             lam=lam,
-            generator=generator,
             device=device,
             max_design_bytes=self.max_design_bytes,
             num_workers=self.num_workers,
@@ -259,7 +258,7 @@ class SamplingPolicySelector:
             candidates,
             shape=(self.num_repeats, m, self.num_steps),
             iteration=iteration,
-            generator=self.generator or getattr(candidates[0], "generator", None),
+            generator=self.generator,
             action_encoding=self.action_encoding,
         )
 

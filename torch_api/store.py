@@ -11,12 +11,8 @@ them in an SQLite database (standard library) that survives kills at any moment:
 * tensors serialised without pickle (a JSON header of keys, dtypes and shapes, then the raw
   bytes); every value (its table, key and bytes) covered by a SHA-256 digest checked when the
   run is read; declared sizes checked against the bytes before any tensor is built;
-* one writer: an exclusive ``flock`` on ``PATH.lock`` (which records the holder's pid and host)
-  for as long as the store is open, released by the kernel when the process dies;
-* never through a symlink: the database, its ``-wal``/``-shm`` files and the lock must not be
-  symbolic links;
-* writes never interrupted half-way by SIGINT/SIGTERM: both are held back while a transaction
-  commits and delivered right after.
+* one writer, never through a symlink, writes never interrupted half-way by SIGINT/SIGTERM
+  (:mod:`torch_api.run_guard`); the errors are in :mod:`torch_api.store_errors`.
 
 The settings that give the stored data its meaning (``config``) are stored with it and must
 match when a run is resumed.
@@ -25,15 +21,11 @@ match when a run is resumed.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
-import signal
-import socket
 import sqlite3
 import struct
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +33,14 @@ from pathlib import Path
 from tensordict import TensorDict, TensorDictBase
 
 from torch_api.codec import decode_tensordict, encode_tensordict
+from torch_api.run_guard import lock_run, refuse_symlinks, signals_held
+from torch_api.store_errors import (
+    CorruptRunError,
+    RunExistsError,
+    RunInUseError,
+    StoreError,
+    StoreWriteError,
+)
 
 __all__ = [
     "CorruptRunError",
@@ -69,27 +69,6 @@ CREATE TABLE IF NOT EXISTS record (
 _TABLES = ("meta", "selection", "episode", "record")
 
 
-class StoreError(Exception):
-    """Base of the store's errors; every message names the run's path."""
-
-
-class CorruptRunError(StoreError, ValueError):
-    """The stored run cannot be read back as written (corrupted, truncated, foreign, other
-    format or other settings). Nothing was changed in the object that tried to load it."""
-
-
-class RunInUseError(StoreError, RuntimeError):
-    """Another process holds the run open for writing."""
-
-
-class RunExistsError(StoreError, FileExistsError):
-    """A run is stored at the path and neither resume nor overwrite was asked for."""
-
-
-class StoreWriteError(StoreError, OSError):
-    """The run cannot be written (read-only place, disk full, not a directory, ...)."""
-
-
 # -- the store ------------------------------------------------------------------------------
 
 
@@ -108,26 +87,6 @@ def _unjson(blob: bytes):
     if len(blob) > MAX_JSON_BYTES:
         raise ValueError(f"a JSON value of {len(blob)} bytes exceeds {MAX_JSON_BYTES}")
     return json.loads(blob.decode())
-
-
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM back (main thread) until the block is done, then deliver them."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def _refuse_symlinks(path: Path) -> None:
-    for p in (path, *(Path(f"{path}{s}") for s in ("-wal", "-shm", "-journal", ".lock"))):
-        if p.is_symlink():
-            raise StoreWriteError(f"{p} is a symbolic link; a run is never written through one")
 
 
 @dataclass
@@ -201,8 +160,8 @@ class RunStore:
             ) from None
         if path.exists() and not path.is_file():
             raise StoreWriteError(f"{path} exists and is not a file")
-        _refuse_symlinks(path)
-        self._lock()
+        refuse_symlinks(path)
+        self._lock_fd = lock_run(path)
         self.started_fresh = True
         held = self._has_data()
         if held and not (resume or overwrite):
@@ -221,27 +180,6 @@ class RunStore:
                     db.execute(f"DELETE FROM {table}")
                 self._put(db, "meta", ("format",), _json(FORMAT))
                 self._put(db, "meta", ("config",), _json(self.config))
-
-    def _lock(self) -> None:
-        lock = Path(f"{self.path}.lock")
-        try:
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-        except OSError as error:
-            raise StoreWriteError(
-                f"cannot write the run {self.path}: {lock}: {error.strerror or error}"
-            ) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "unknown"
-            os.close(fd)
-            raise RunInUseError(
-                f"{self.path} is in use by another process ({holder}); wait for it to end or "
-                "stop it before resuming"
-            ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()} on host {socket.gethostname()}\n".encode(), 0)
-        self._lock_fd = fd
 
     def _has_data(self) -> str | None:
         """A short description of what the file at path holds, or None if nothing."""
@@ -278,7 +216,7 @@ class RunStore:
             db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as error:
             raise self._write_error(error) from None
-        _refuse_symlinks(self.path)
+        refuse_symlinks(self.path)
 
     def _write_error(self, error: Exception) -> StoreError:
         if isinstance(error, sqlite3.DatabaseError) and "not a database" in str(error):
@@ -290,7 +228,7 @@ class RunStore:
         """One transaction, committed (fsynced) before the block returns; signals held."""
         if self._db is None:
             raise StoreWriteError(f"the run {self.path} is closed")
-        with _signals_held():
+        with signals_held():
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 try:

@@ -119,9 +119,13 @@ class TrialStreams:
     A run has a seed and, with T trials side by side, one seed per trial. Each iteration l
     derives, per role (``STREAMS``: the policy's sampling, the rewarded env, the reward-free
     env, the reward-free sampling, the evaluation), one seed for the run (:func:`derive_seed`)
-    and one per trial (for per-trial streams: the policies' ``block_generators`` and the envs'
+    and one per trial (for per-trial streams: the policies' streams and the envs'
     ``set_block_seeds``). A run that buys one episode at a time derives its streams from
     (seed, trial, iteration, episode, role) instead (:func:`slice_seed`).
+
+    Sampling streams are derived fresh for every use (:meth:`generators`, given to a policy by
+    ``policy.with_streams``): nothing continues a stream from one use to the next, so a use in
+    worker processes leaves nothing to catch up in the parent.
 
     Args:
         seed: the run's seed.
@@ -134,6 +138,9 @@ class TrialStreams:
         True
         >>> len(streams.block_generators(1, "policy"))
         2
+        >>> a, b = streams.generators(1, "policy"), streams.generators(1, "policy")
+        >>> torch.equal(torch.rand(3, generator=a[0]), torch.rand(3, generator=b[0]))
+        True
     """
 
     def __init__(self, *, seed: int, trial_seeds: Sequence[int] | None = None) -> None:
@@ -171,6 +178,22 @@ class TrialStreams:
         if self.trial_seeds is None:
             return None
         return [torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, role)]
+
+    def generators(self, iteration: int, role: str) -> torch.Generator | list[torch.Generator]:
+        """Fresh sampling streams of ``role`` in iteration l, for ``policy.with_streams``: one
+        generator per trial in a run with trials, else one for the run."""
+        if self.trial_seeds is None:
+            return torch.Generator().manual_seed(self.run_seed(iteration, role))
+        return self.block_generators(iteration, role)
+
+    def slice_generators(
+        self, iteration: int, episode: int, role: str
+    ) -> torch.Generator | list[torch.Generator]:
+        """Fresh sampling streams of ``role`` for rewarded episode m of iteration l."""
+        seed, blocks = self.slice_seeds(iteration, episode, role)
+        if blocks is None:
+            return torch.Generator().manual_seed(seed)
+        return [torch.Generator().manual_seed(s) for s in blocks]
 
     def env_seeds(self, iteration: int, role: str) -> tuple[int, list[int] | None]:
         """The run's seed and, with trials, the per-trial seeds of an env's ``role``."""
