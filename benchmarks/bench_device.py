@@ -143,8 +143,8 @@ def batting(args: Args, tmp: Path) -> list[dict]:
             ]
         )
         runs = list(payload["results"]["decreasing"]["runs"].values())
-        chosen = [run["chosen"] for run in runs]
-        performance = [run["performance"] for run in runs]
+        chosen = [[it["chosen"] for it in run["iterations"]] for run in runs]
+        performance = [[it["performance"] for it in run["iterations"]] for run in runs]
         return trials, payload["wall_seconds"], chosen, performance
 
     return compare_devices("batting", run_on)

@@ -69,9 +69,10 @@ def run_config(config: str, args: argparse.Namespace) -> dict:
         "floor_loop_1_thread_s": loop,
         "wall_over_floor": wall / floor,
         "last_iteration_mean": {
-            f"{name} {run['method']}": sum(run["performance"][-1]) / len(run["performance"][-1])
+            f"{name} {method}": sum(last) / len(last)
             for name, res in payload["results"].items()
-            for run in res["runs"].values()
+            for method, run in res["runs"].items()
+            for last in [run["iterations"][-1]["performance"]]
         },
     }
 

@@ -19,6 +19,11 @@ holds runs is refused), ``--backend`` (where chunks of trials run). A script tha
 honour one of them declares it in ``unavailable``: the flag is refused with the reason, never
 silently ignored.
 
+The options of the paired experiments are declared once: :class:`RunOptions` (``--trials``,
+``--seed``, ``--out-dir``, ``--resume``, ``--overwrite``, ``--threads``, ``--logger``) and
+:class:`ChunkOptions` (those and ``--device``, ``--backend``, ``--chunks``, ``--workers``,
+``--ray-address``, ``--ray-cpus``); a script's ``Args`` extends one of them.
+
 Validation is declarative where it can be: ``field(default, low=1)``, ``choices=...``; the
 rest goes into a script's ``check(args)`` that returns the first problem as one line. Every
 problem ends the script through ``argparse`` (``error: --trials must be >= 1, got -3``, exit
@@ -29,14 +34,13 @@ from __future__ import annotations
 
 import argparse
 import ast
-import contextlib
 import dataclasses
 import inspect
 import os
 import re
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -74,14 +78,86 @@ def field(
     return dataclasses.field(default=default, metadata=meta)
 
 
+@dataclasses.dataclass
+class SelectionOptions:
+    """The settings of the sampling-policy selection (Algorithm 2), in every script that selects.
+    A script's ``Args`` extends it, declaring a field again where its default differs."""
+
+    repeats: int = field(5, low=1)
+    """Z, J-values averaged into J'"""
+    lam: float = field(1e-3, above=0)
+    """λ, ridge regularisation"""
+
+
+@dataclasses.dataclass
+class RunOptions(SelectionOptions):
+    """The options of every paired experiment (AL and PL runs on the same seeds, stored as they
+    go) and the selection's settings."""
+
+    trials: int = field(2, low=2, why="(a paired t-test needs two)")
+    """independent trials, all run as one batch"""
+    seed: int = 0
+    """master seed; AL and PL of a schedule share their seeds (a paired design)"""
+    out_dir: str = "results"
+    """where the JSON, the CSV, the figure and the stored runs go"""
+    resume: bool = False
+    """continue the runs stored in out_dir; completed runs are not recomputed (a missing run
+    starts fresh)"""
+    overwrite: bool = False
+    """discard the runs stored in out_dir and start over"""
+    threads: int = field(0, low=0)
+    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
+    logger: str = field("none", choices=LOGGERS)
+    """also write the learning curves (means over trials) with a TorchRL logger under
+    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
+
+
+@dataclasses.dataclass
+class ChunkOptions(RunOptions):
+    """:class:`RunOptions` and where the runs go: the device, and chunks of trials on a
+    backend (``torch_api.dispatch``)."""
+
+    device: str = "cpu"
+    """where the algebra runs (cpu, cuda or cuda:N)"""
+    backend: str = field("local", choices=BACKENDS)
+    """where the chunks of trials run: local (here, one after another), processes (a pool of
+    local worker processes) or ray"""
+    chunks: int = field(1, low=1)
+    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
+    workers: int = field(0, low=0)
+    """processes backend: worker processes (0: one per CPU core)"""
+    ray_address: str = ""
+    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
+    ray_cpus: int = field(0, low=0)
+    """CPUs of a local Ray instance (0: all)"""
+
+
+def run_options_error(args) -> str | None:
+    """The rules between run options: ``--resume`` xor ``--overwrite``, ``--chunks`` <= trials."""
+    if not isinstance(args, RunOptions):
+        return None
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
+    chunks = getattr(args, "chunks", 1)
+    if chunks > args.trials:
+        return f"--chunks must lie in 1..{args.trials} (--trials), got {chunks}"
+    return None
+
+
 def field_docs(cls) -> dict[str, str]:
-    """The string literal under each field of a dataclass (for --help)."""
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {
-        a.target.id: " ".join(b.value.value.split())
-        for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
-    }
+    """The string literal under each field of a dataclass and of its dataclass bases (for
+    --help); a field declared again in a subclass takes the subclass's text."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        body = ast.parse(inspect.getsource(klass)).body[0].body
+        docs |= {
+            a.target.id: " ".join(b.value.value.split())
+            for a, b in zip(body, body[1:], strict=False)
+            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
+        }
+    return docs
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -218,69 +294,42 @@ def logger_error(kind: str) -> str | None:
     return None
 
 
-def make_logger(kind: str, out_dir: str | os.PathLike, experiment: str):
-    """A TorchRL logger writing under ``<out_dir>/logs/<experiment>``, or None for ``"none"``.
-
-    ``csv`` writes one CSV file per curve (``scalars/<name>.csv``: step, value), ``tensorboard``
-    event files for ``tensorboard --logdir <out_dir>/logs``, ``wandb`` a Weights & Biases run
-    (log in first; the run is named after the experiment).
-    """
-    if kind == "none":
-        return None
-    from torchrl.record.loggers import get_logger
-
-    return get_logger(kind, logger_name=str(Path(out_dir) / "logs"), experiment_name=experiment)
-
-
-def log_means(logger, prefix: str, step: int, values: dict[str, Any]) -> None:
-    """Log ``prefix/name`` = the mean of each per-trial list (or the number) at ``step``."""
-    if logger is None:
-        return
-    for name, value in values.items():
-        if value is None:
-            continue
-        if isinstance(value, list | tuple):
-            if not value:
-                continue
-            value = sum(value) / len(value)
-        logger.log_scalar(f"{prefix}/{name}", float(value), step=step)
-
-
 def parse(
     cls: type[T],
     argv: Sequence[str] | None,
+    doc: str | None,
     *,
-    description: str,
     epilog: str | None = None,
     check: Callable[[T], str | None] | None = None,
     unavailable: dict[str, str] | None = None,
-    out_dir: str | None = "out_dir",
 ) -> T:
     """Parse ``argv`` into ``cls`` and validate it; any problem exits through ``argparse``.
 
-    Order: types (argparse), declared ranges and choices, ``check(args)`` (cross-field rules;
-    returns one line or None), ``--device`` syntax, then the output folder (created, probed),
-    then whether a CUDA device is really there (imports torch, so it comes last).
+    Order: types (argparse), declared ranges and choices, the rules between run options,
+    ``check(args)`` (cross-field rules; returns one line or None), ``--device`` syntax, the
+    logger's package, then the output (``--out-dir``, or the folder of ``--out FILE``: created,
+    probed), then whether a CUDA device is really there (imports torch, so it comes last).
 
     Args:
         cls: the dataclass of arguments.
         argv: the arguments (``None``: ``sys.argv[1:]``).
-        description, epilog: for ``--help``.
+        doc: the script's docstring; its first line is the ``--help`` description.
+        epilog: for ``--help``.
         check: cross-field validation, returning the first problem as one line, or None.
-        unavailable: flags this script cannot honour, mapped to the reason.
-        out_dir: the field naming the output folder (``None``: the script writes none, or
-            checks its output itself).
+        unavailable: flags this script cannot honour, mapped to the reason (:func:`not_here`).
     """
-    parser = dataclass_parser(cls, description, epilog, unavailable)
+    parser = dataclass_parser(cls, first_line(doc), epilog, unavailable)
     args = cls(**vars(parser.parse_args(argv)))
-    problem = range_error(cls, args) or (check(args) if check else None)
+    problem = range_error(cls, args) or run_options_error(args) or (check(args) if check else None)
     device = getattr(args, "device", None)
     if problem is None and device is not None:
         problem = device_syntax_error(device)
     if problem is None and hasattr(args, "logger"):
         problem = logger_error(args.logger)
-    if problem is None and out_dir is not None and hasattr(args, out_dir):
-        problem = out_dir_error(getattr(args, out_dir), f"--{out_dir.replace('_', '-')}")
+    if problem is None and hasattr(args, "out_dir"):
+        problem = out_dir_error(args.out_dir)
+    if problem is None and hasattr(args, "out"):
+        problem = out_dir_error(Path(args.out).parent, flag="--out (its folder)")
     if problem is None and device is not None and device != "cpu":
         problem = device_error(device)
     if problem is not None:
@@ -288,97 +337,22 @@ def parse(
     return args
 
 
+NOT_HERE = {
+    "trials": "one run here, not the independent trials of an experiment",
+    "resume": "nothing to resume: a run takes seconds; rerun it",
+    "backend": "everything runs in this process",
+    "out_dir": "this script writes one file: use --out FILE",
+    "logger": "no learning curves: the JSON holds every number",
+}
+"""Why a script takes no such flag, where the reason is the same for every script."""
+
+
+def not_here(*flags: str, **reasons: str) -> dict[str, str]:
+    """The flags a script cannot honour and why: ``flags`` for the shared reasons of
+    :data:`NOT_HERE`, ``reasons`` (flag=reason) for the script's own."""
+    return {flag: NOT_HERE[flag] for flag in flags} | reasons
+
+
 def first_line(doc: str | None) -> str:
     """The first line of a docstring (a script's one-line description)."""
     return (doc or "").strip().split("\n")[0]
-
-
-# -- durable runs: --resume / --overwrite, signals ------------------------------------------
-
-
-class Interrupted(BaseException):
-    """SIGINT or SIGTERM arrived (raised in the main thread by :func:`raise_on_signals`)."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-
-
-@contextlib.contextmanager
-def raise_on_signals() -> Iterator[None]:
-    """Within the block, SIGINT and SIGTERM raise :class:`Interrupted` in the main thread; the
-    handlers before it are restored after it.
-
-    The run's store holds both back while it commits, so the exception arrives between
-    commits: the write in flight always completes.
-    """
-    import signal
-
-    def handler(signum, frame):
-        raise Interrupted(signum)
-
-    before = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in before.items():
-            signal.signal(sig, old)
-
-
-def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:
-    """Why the script must not start: runs are stored at ``paths`` and neither ``--resume`` nor
-    ``--overwrite`` was given (or both were); None if it may."""
-    if resume and overwrite:
-        return "--resume and --overwrite exclude each other"
-    held = [p for p in paths if p.is_file() and p.stat().st_size > 0]
-    if held and not (resume or overwrite):
-        names = ", ".join(str(p) for p in held[:3]) + (" ..." if len(held) > 3 else "")
-        return (
-            f"runs are stored already ({names}); add --resume to continue them or --overwrite "
-            "to discard them"
-        )
-    return None
-
-
-def stored_summary(paths: Sequence[Path]) -> tuple[int, int]:
-    """(the iteration in flight, rewarded episodes stored over all trials) of the runs stored
-    at ``paths`` (read only; missing or unreadable files count as empty)."""
-    from torch_api.store import RunStore, StoreError
-
-    in_flight, episodes, last = [], 0, 0
-    for path in paths:
-        if not Path(path).is_file():
-            continue
-        try:
-            stored = RunStore.read(path)
-        except StoreError:
-            continue
-        trials = stored.config.get("num_trials") or 1
-        episodes += stored.num_episodes * trials
-        done, total = len(stored.records), len(stored.config.get("schedule", []))
-        last = max(last, done)
-        if done < total:
-            in_flight.append(done + 1)
-    return (min(in_flight) if in_flight else last), episodes
-
-
-def exit_interrupted(signum: int, paths: Sequence[Path], where: str | os.PathLike) -> None:
-    """Print the one line of an interrupted run and exit with 128 + the signal (130, 143)."""
-    import sys
-
-    iteration, episodes = stored_summary(paths)
-    print(
-        f"interrupted at iteration {iteration}; {episodes} rewarded episodes stored in {where}; "
-        "continue with --resume",
-        file=sys.stderr,
-        flush=True,
-    )
-    raise SystemExit(128 + signum)
-
-
-def exit_store_error(error: BaseException) -> None:
-    """A store error (a run in use, unwritable, corrupted, of other settings) as one line."""
-    import sys
-
-    print(f"error: {error}", file=sys.stderr, flush=True)
-    raise SystemExit(1)

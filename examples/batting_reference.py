@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from _cli import field, first_line, out_dir_error, parse
+from _cli import field, not_here, parse
 
 
 @dataclass
@@ -27,37 +27,32 @@ class Args:
     """the JSON file the summary goes to (its folder is created)"""
 
 
-def check(args: Args) -> str | None:
-    return out_dir_error(Path(args.out).parent, flag="--out (its folder)")
-
-
 def parse_args(argv: list[str] | None = None) -> Args:
     return parse(
         Args,
         argv,
-        description=first_line(__doc__),
-        check=check,
-        unavailable={
-            "logger": "nothing is learnt: the JSON holds every number",
-            "trials": "there is no learning here; the random policy's sample is --episodes",
-            "out_dir": "this script writes one file: use --out FILE",
-            "device": "MuJoCo runs on the CPU and there is no algebra to move",
-            "resume": "nothing to resume: it takes seconds",
-            "backend": "everything runs here, the arms batched in MuJoCo's thread pool",
-        },
+        __doc__,
+        unavailable=not_here(
+            "resume",
+            "backend",
+            "out_dir",
+            "logger",
+            trials="there is no learning here; the random policy's sample is --episodes",
+            device="MuJoCo runs on the CPU and there is no algebra to move",
+        ),
     )
 
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
 
-import itertools  # noqa: E402
-import json  # noqa: E402
+import itertools
+import json
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
-from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator  # noqa: E402
+from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator
 
 ACTION_NAMES = ("cock", "swing")  # action 0 = (50, -35) N m, action 1 = (-50, 10) N m
 

@@ -21,29 +21,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import field, first_line, parse
+from _cli import SelectionOptions, field, not_here, parse
 
 
 @dataclass
-class Args:
+class Args(SelectionOptions):
     """Command-line arguments of the one-step experiment."""
 
     trials: int = field(100, low=1)
     """independent trials (the paper: 100)"""
-    episodes: int = field(10, low=1)
-    """M, episodes per data set"""
-    steps: int = field(10, low=1)
-    """N, steps per episode"""
-    repeats: int = field(5, low=1)
-    """Z, J-values averaged into J'"""
+    seed: int = 0
+    """seed of the environment and the policies"""
     candidates: int = field(10, low=2)
     """K, candidate k samples with ε = k / K"""
     eval_epsilon: float = field(0.1, low=0.0, high=1.0)
     """ε of the evaluation policies"""
-    lam: float = field(1e-3, above=0)
-    """λ, ridge regularisation (> 0)"""
-    seed: int = 0
-    """seed of the environment and the policies"""
+    episodes: int = field(10, low=1)
+    """M, episodes per data set"""
+    steps: int = field(10, low=1)
+    """N, steps per episode"""
     out_dir: str = "results/chain_walk_one_step"
     """where the JSON and the figures go"""
     device: str = "cpu"
@@ -51,52 +47,35 @@ class Args:
 
 
 def parse_args(argv=None) -> Args:
-    return parse(
-        Args,
-        argv,
-        description=first_line(__doc__),
-        unavailable={
-            "logger": "no iterations: one_step.json holds every number",
-            "resume": "a run takes seconds and buys no expensive rewards; rerun it",
-            "backend": "all trials run as one batch in this process",
-        },
-    )
+    return parse(Args, argv, __doc__, unavailable=not_here("resume", "backend", "logger"))
 
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
 
-import dataclasses  # noqa: E402
-import json  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import dataclasses
+import json
+import time
+from pathlib import Path
 
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import scipy.stats  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import scipy.stats
+import torch
+from tqdm import tqdm
 
-from envs.chain_walk import (  # noqa: E402
-    CENTERS,
-    GAMMA,
-    TAU,
-    ChainWalkEnv,
-    deterministic_policy_probs,
-    exact_psi,
-    state_action_occupancy,
-    true_generalisation_error,
-)
-from torch_api.basis import GaussianActionBasis  # noqa: E402
-from torch_api.data import collect_episodes  # noqa: E402
-from torch_api.design import build_design  # noqa: E402
-from torch_api.policies import TabularPolicy  # noqa: E402
-from torch_api.psi import PsiHat  # noqa: E402
-from torch_api.selector import j_values  # noqa: E402
-from torch_api.solve import weighted_ridge  # noqa: E402
+from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv, deterministic_policy_probs
+from envs.chain_walk.exact import exact_psi, state_action_occupancy, true_generalisation_error
+from torch_api.basis import GaussianActionBasis
+from torch_api.data import collect_episodes
+from torch_api.design import build_design
+from torch_api.policies import TabularPolicy
+from torch_api.psi import PsiHat
+from torch_api.selector import j_values
+from torch_api.solve import weighted_ridge
 
 BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # eq. 51-53, 10-letter readings
 
@@ -191,6 +170,14 @@ def mean_se_clipped(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.stack([np.minimum(se, mean), se])
 
 
+def save(fig, title: str, path: Path) -> None:
+    """Title the figure, lay it out, write it (120 dpi) and close it."""
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def plot_profiles(results: dict, key: str, ylabel: str, path: Path, obtained: bool) -> None:
     """Mean ± 1 s.e. over trials of a [T, K] error over the candidates k (Figures 3 and 4).
 
@@ -218,14 +205,8 @@ def plot_profiles(results: dict, key: str, ylabel: str, path: Path, obtained: bo
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, loc="upper left")
-    fig.suptitle(
-        f"{ylabel}: mean over T = {trials} trials, bars ± 1 standard error of the mean "
-        "(clipped at 0)",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    title = f"{ylabel}: mean over T = {trials} trials, bars ± 1 standard error of the mean "
+    save(fig, title + "(clipped at 0)", path)
 
 
 def plot_boxes(results: dict, path: Path) -> None:
@@ -253,14 +234,8 @@ def plot_boxes(results: dict, path: Path) -> None:
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3, axis="y")
     trials = len(data[0])
-    fig.suptitle(
-        f"Ḡ obtained over T = {trials} trials: box = quartiles, line = median, "
-        "◇ = mean, whiskers = 5 % and 95 % quantiles",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    title = f"Ḡ obtained over T = {trials} trials: box = quartiles, line = median, "
+    save(fig, title + "◇ = mean, whiskers = 5 % and 95 % quantiles", path)
 
 
 def main(argv=None) -> dict:

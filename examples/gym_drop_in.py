@@ -36,6 +36,11 @@ are seeded on their own, so the numbers are an equally valid sample, not those o
 
     python examples/gym_drop_in.py --reward-free-workers 2
 
+Outputs in ``--out-dir`` (``examples/_harness.py``): ``gym_drop_in.csv`` (every number, one
+row per method × iteration × trial × measure; the schedule column reads ``custom``),
+``gym_drop_in.json`` (arguments, the t-test, the checks of the bought data) and
+``performance.png``.
+
 Durable runs: AL and PL are stored as they go in ``<out-dir>/checkpoints/{active,passive}.db``
 (``torch_api/store.py``): the rewarded episodes of an iteration are committed before the next
 are measured. A folder holding runs is refused unless ``--resume`` (continue them, buying only
@@ -47,35 +52,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import (
-    LOGGERS,
-    Interrupted,
-    exit_interrupted,
-    exit_store_error,
-    field,
-    first_line,
-    log_means,
-    make_logger,
-    parse,
-    raise_on_signals,
-    stored_runs_error,
-)
+from _cli import RunOptions, field, parse
 
 
 @dataclass
-class Args:
+class Args(RunOptions):
     """Command-line arguments of the CartPole drop-in demo."""
 
     trials: int = field(8, low=2, why="(a paired t-test needs two)")
     """independent trials, all run as one batch"""
-    seed: int = 0
-    """run seed (shared by AL and PL: a paired design)"""
     out_dir: str = "results/gym_drop_in"
     """where the JSON, the CSV, the figure and the stored runs go"""
-    resume: bool = False
-    """continue the runs stored in out_dir (a missing run starts fresh)"""
-    overwrite: bool = False
-    """discard the runs stored in out_dir and start over"""
     schedule: str = "10,10,6,6,6,2,2"
     """rewarded episodes per iteration, comma-separated (its length is L)"""
     iterations: int = field(0, low=0)
@@ -84,10 +71,6 @@ class Args:
     """N, steps per episode (an episode may end earlier when the pole falls)"""
     gamma: float = field(0.95, above=0.0, high=1.0)
     """discount γ, in (0, 1]"""
-    repeats: int = field(5, low=1)
-    """Z, J-values averaged into J'"""
-    lam: float = field(1e-3, above=0)
-    """λ, ridge regularisation"""
     grid: float = field(0.5, above=0)
     """Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin"""
     tau: float = field(0.75, above=0)
@@ -96,14 +79,16 @@ class Args:
     """test episodes per trial and iteration"""
     test_steps: int = field(200, low=1)
     """longest test episode (steps)"""
-    threads: int = field(0, low=0)
-    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
     reward_free_workers: int = field(0, low=0)
     """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
     MultiSyncCollector; each steps its share of the CartPoles)"""
-    logger: str = field("none", choices=LOGGERS)
-    """also write the learning curves (means over trials) with a TorchRL logger under
-    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
+
+
+UNAVAILABLE = {
+    "device": "CartPole steps in Python on the CPU (Gymnasium); the algebra is small",
+    "backend": "all trials run as one batch here (--reward-free-workers spreads the reward-free "
+    "collection over processes)",
+}
 
 
 def schedule_of(args: Args) -> tuple[int, ...]:
@@ -113,8 +98,6 @@ def schedule_of(args: Args) -> tuple[int, ...]:
 
 
 def check(args: Args) -> str | None:
-    if args.resume and args.overwrite:
-        return "--resume and --overwrite exclude each other"
     try:
         schedule = tuple(int(m) for m in args.schedule.split(","))
     except ValueError:
@@ -127,51 +110,31 @@ def check(args: Args) -> str | None:
 
 
 def parse_args(argv=None) -> Args:
-    return parse(
-        Args,
-        argv,
-        description=first_line(__doc__),
-        check=check,
-        unavailable={
-            "device": "CartPole steps in Python on the CPU (Gymnasium); the algebra is small",
-            "backend": "all trials run as one batch here (--reward-free-workers spreads the "
-            "reward-free collection over processes)",
-        },
-    )
+    return parse(Args, argv, __doc__, check=check, unavailable=UNAVAILABLE)
 
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
 
-import csv  # noqa: E402
-import dataclasses  # noqa: E402
-import itertools  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import itertools
+import math
+from pathlib import Path
 
-import gymnasium as gym  # noqa: E402
-import matplotlib  # noqa: E402
+import _harness as harness
+import gymnasium as gym
+import numpy as np
+import torch
+from _figures import steps_balanced
+from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import scipy.stats  # noqa: E402
-import torch  # noqa: E402
-from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from torch_api.basis import GaussianActionBasis  # noqa: E402
-from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
-from torch_api.iteration import ActivePolicyIteration  # noqa: E402
-from torch_api.policies import LinearQPolicy  # noqa: E402
-from torch_api.store import StoreError  # noqa: E402
+from torch_api.basis import GaussianActionBasis
+from torch_api.data import REWARD_KEY, collect_episodes
+from torch_api.policies import LinearQPolicy
 
 ENV_ID = "CartPole-v1"
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
 X_LIMIT, ANGLE_LIMIT = 2.4, 12 * 2 * math.pi / 360  # CartPole's termination limits (m, rad)
-METHODS = {"AL": "active", "PL": "passive"}
+MEASURES = ("steps_balanced", "steps_balanced_greedy")
 
 
 def make_env(batch: int) -> TransformedEnv:
@@ -254,148 +217,31 @@ def make_evaluator(args: Args):
     return evaluate
 
 
-def store_of(args: Args, mode: str) -> Path:
-    """Where the run of one mode is stored."""
-    return Path(args.out_dir) / "checkpoints" / f"{mode}.db"
-
-
-def run_method(args: Args, mode: str) -> tuple[dict, dict]:
-    """One batched run of Algorithm 1 (all trials), stored as it goes."""
+def run_chunk(chunk: harness.Chunk) -> dict:
+    """One batched run of Algorithm 1 (all trials), stored as it goes; its bought data checked."""
+    args = chunk.args
     evaluate = make_evaluator(args)
-    api = ActivePolicyIteration(
+    api = harness.make_iteration(
+        chunk,
+        repeats=args.repeats,
         env=make_env,
         reward_free_env=make_env if args.reward_free_workers else None,
         reward_free_workers=args.reward_free_workers,
         basis=make_basis(args),
-        schedule=schedule_of(args),
+        schedule=chunk.schedule,
         num_steps=args.steps,
         gamma=args.gamma,
-        mode=mode,
         lam=args.lam,
-        num_repeats=args.repeats,
         psi_mode="single",
         evaluate=evaluate,
-        num_trials=args.trials,
-        seed=args.seed,
         keep_reward_free=False,
-        checkpoint_path=store_of(args, mode),
-        resume=args.resume,
-        overwrite=args.overwrite,
     )
-    if api.resumed:
-        print(f"resumed {store_of(args, mode)} at iteration {api.iteration}/{len(api.schedule)}")
-    elif args.resume:
-        print(f"nothing stored in {store_of(args, mode)}: starting it fresh")
-    initial = evaluate(api.initial_policy(), args.seed + 1)
-    started = time.perf_counter()
-    history = api.run(progress=True)
-    seconds = time.perf_counter() - started
-    data_check = check_episodes(api.rewarded.episodes())
-    record = {
-        "mode": mode,
-        "seconds": seconds,
-        "iterations": [{"iteration": 0, "rewarded_transitions": 0, **initial}]
-        + [rec.row() for rec in history],
-    }
-    return record, data_check
+    initial = evaluate(api.initial_policy(), args.seed + 1)  # pi_1: iteration 0
+    run = harness.run_iterations(chunk, api, initial=initial)
+    return run | {"data_check": check_episodes(api.rewarded.episodes())}
 
 
-def mean_se(values) -> tuple[float, float]:
-    x = np.asarray(values, dtype=np.float64)
-    return float(x.mean()), float(x.std(ddof=1) / math.sqrt(x.size))
-
-
-def write_csv(runs: dict, path: Path) -> None:
-    """One row per method × iteration × trial."""
-    with path.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(
-            [
-                "method",
-                "iteration",
-                "trial",
-                "rewarded_transitions",
-                "chosen",
-                "sampling_rule",
-                "steps_balanced",
-                "steps_balanced_greedy",
-            ]
-        )
-        for method, run in runs.items():
-            for it in run["iterations"]:
-                for t in range(len(it["steps_balanced"])):
-                    writer.writerow(
-                        [
-                            method,
-                            it["iteration"],
-                            t,
-                            it["rewarded_transitions"],
-                            it["chosen"][t] if "chosen" in it else "",
-                            it["sampling_rule"][t] if "sampling_rule" in it else "",
-                            it["steps_balanced"][t],
-                            it["steps_balanced_greedy"][t],
-                        ]
-                    )
-
-
-def plot(runs: dict, path: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, key in zip(axes, ("steps_balanced", "steps_balanced_greedy"), strict=True):
-        for method, run in runs.items():
-            its = run["iterations"]
-            stats = np.array([mean_se(it[key]) for it in its])
-            ax.errorbar(
-                [it["iteration"] for it in its],
-                stats[:, 0],
-                yerr=np.stack([np.minimum(stats[:, 1], stats[:, 0]), stats[:, 1]]),  # >= 0
-                color={"AL": "tab:red", "PL": "tab:blue"}[method],
-                marker="o",
-                capsize=3,
-                label=method,
-            )
-        rule = "greedy" if key.endswith("greedy") else "ε-greedy"
-        ax.set_title(f"{ENV_ID}: steps balanced by pi_(l+1) ({rule})", fontsize=9)
-        ax.set_xlabel("iteration l (0: the initial policy)")
-        ax.set_ylabel("steps balanced")
-        ax.set_ylim(bottom=0)
-        ax.grid(alpha=0.3)
-    trials = len(runs["AL"]["iterations"][0]["steps_balanced"])
-    fig.suptitle(f"mean over T = {trials} trials, bars ± 1 standard error of the mean", fontsize=10)
-    axes[0].legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def main(argv=None) -> dict:
-    args = parse_args(argv)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-    out = Path(args.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stores = [store_of(args, mode) for mode in METHODS.values()]
-    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
-        raise SystemExit(f"error: {why}")
-    try:
-        with raise_on_signals():
-            return run_all(args, out)
-    except Interrupted as interrupt:
-        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
-    except StoreError as error:
-        exit_store_error(error)
-
-
-def run_all(args: Args, out: Path) -> dict:
-    """Both runs, then the table, the files and the figure."""
-    started = time.perf_counter()
-    runs, checks = {}, {}
-    for method, mode in tqdm(METHODS.items(), desc="method"):
-        runs[method], checks[method] = run_method(args, mode)
-    last = {m: np.asarray(r["iterations"][-1]["steps_balanced"]) for m, r in runs.items()}
-    test = scipy.stats.ttest_rel(last["AL"], last["PL"])
-    t_test = {"t": float(test.statistic), "p": float(test.pvalue)}
-    wall = time.perf_counter() - started
-
+def print_table(runs: dict, args: Args, test: dict, wall: float) -> None:
     print(
         f"\n{ENV_ID}: {args.trials} trials, steps balanced (of {args.test_steps}) by pi_(l+1), "
         f"mean ± s.e. ({wall:.1f} s wall)"
@@ -405,35 +251,36 @@ def run_all(args: Args, out: Path) -> dict:
         + " ".join(f"{'l=' + str(it['iteration']):>12}" for it in runs["AL"]["iterations"])
     )
     for method, run in runs.items():
-        for key, rule in (("steps_balanced", "ε-greedy"), ("steps_balanced_greedy", "greedy")):
+        for key, rule in zip(MEASURES, ("ε-greedy", "greedy"), strict=True):
             cells = [
-                f"{m:6.1f}±{se:5.1f}" for m, se in (mean_se(it[key]) for it in run["iterations"])
+                f"{m:6.1f}±{se:5.1f}"
+                for m, se in (harness.mean_se(it[key]) for it in run["iterations"])
             ]
             print(f"{method:<7} {rule:<9} " + " ".join(f"{c:>12}" for c in cells))
         chosen = [np.bincount(it["chosen"], minlength=4).tolist() for it in run["iterations"][1:]]
         print(f"{method:<7} candidates chosen per iteration (counts of k = 1..4): {chosen}")
-    print(
-        f"paired t-test AL vs PL at the last iteration (ε-greedy): t = {t_test['t']:.3f}, "
-        f"p = {t_test['p']:.3g}"
-    )
-    for method, check in checks.items():
-        print(f"bought data ({method}): {check}")
-    payload = {
-        "args": dataclasses.asdict(args),
-        "wall_seconds": wall,
-        "runs": runs,
-        "t_test_last_iteration": t_test,
-        "data_checks": checks,
-    }
-    (out / "gym_drop_in.json").write_text(json.dumps(payload))
-    write_csv(runs, out / "gym_drop_in.csv")
-    plot(runs, out / "performance.png")
-    logger = make_logger(args.logger, out, "gym_drop_in")
+    stat = "undefined" if test["t"] is None else f"t = {test['t']:.3f}, p = {test['p']:.3g}"
+    print(f"paired t-test AL vs PL at the last iteration (ε-greedy): {stat}")
     for method, run in runs.items():
-        for it in run["iterations"]:
-            curves = {k: it[k] for k in ("steps_balanced", "steps_balanced_greedy")}
-            log_means(logger, method, it["iteration"], curves)
-    print(f"wrote {out}/gym_drop_in.json, gym_drop_in.csv and performance.png")
+        print(f"bought data ({method}): {run['data_check']}")
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    experiment = harness.Experiment(
+        name="gym_drop_in",
+        schedules={"custom": schedule_of(args)},
+        run_chunk=run_chunk,
+        t_tests=("steps_balanced",),
+        store_stem="{mode}",
+        curves=MEASURES,
+    )
+    results, wall = harness.run_experiment(args, experiment)
+    entry = results["custom"]
+    print_table(entry["runs"], args, entry["t_tests"]["steps_balanced"], wall)
+    payload = harness.write_results(args, experiment, results, wall)
+    steps_balanced(results, ENV_ID, Path(args.out_dir) / "performance.png")
+    print(f"wrote {args.out_dir}/gym_drop_in.json, gym_drop_in.csv and performance.png")
     return payload
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from _cli import field, first_line, out_dir_error, parse
+from _cli import field, not_here, parse
 
 
 @dataclass
@@ -28,43 +28,37 @@ class Args:
     """simulated time between two drawn arm snapshots (ms)"""
 
 
+UNAVAILABLE = not_here("resume", "backend", "out_dir") | {
+    "logger": "nothing is learnt: it draws one episode",
+    "trials": "it draws one noiseless episode",
+    "seed": "the episode is noiseless: nothing is random",
+    "device": "MuJoCo runs on the CPU",
+}
+
+
 def check(args: Args) -> str | None:
     if not args.sequence or set(args.sequence) - {"0", "1"}:
         return f"--sequence must be digits 0 and 1, got {args.sequence!r}"
     if len(args.sequence) > 10:
         return f"--sequence must have at most 10 actions (N = 10), got {len(args.sequence)}"
-    return out_dir_error(Path(args.out).parent, flag="--out (its folder)")
+    return None
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
-    return parse(
-        Args,
-        argv,
-        description=first_line(__doc__),
-        check=check,
-        unavailable={
-            "logger": "nothing is learnt: it draws one episode",
-            "trials": "it draws one noiseless episode",
-            "seed": "the episode is noiseless: nothing is random",
-            "out_dir": "this script writes one file: use --out FILE",
-            "device": "MuJoCo runs on the CPU",
-            "resume": "nothing to resume: it takes seconds",
-            "backend": "one episode runs here",
-        },
-    )
+    return parse(Args, argv, __doc__, check=check, unavailable=UNAVAILABLE)
 
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
 
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import mujoco
+import numpy as np
 
-from envs.batting import ACTION_TORQUES, CONTROL_DT, BattingSimulator, PhysicsHook  # noqa: E402
+from envs.batting import ACTION_TORQUES, CONTROL_DT, BattingSimulator, PhysicsHook
 
 
 class ArmTrace(PhysicsHook):

@@ -25,15 +25,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import field, first_line, parse
+from _cli import SelectionOptions, field, not_here, parse
 
 
 @dataclass
-class Args:
+class Args(SelectionOptions):
     """Command-line arguments of the TorchRL pipeline example."""
 
+    repeats: int = field(2, low=1)
+    """Z, J-values averaged into J'"""
     seed: int = 0
     """seed of torch's global generator (the policies' draws) and of the environments"""
+    gamma: float = field(0.99, above=0.0, high=1.0)
+    """discount γ, in (0, 1]"""
     out_dir: str = "results/torchrl_pipeline"
     """where the JSON goes"""
     iterations: int = field(5, low=1)
@@ -42,14 +46,8 @@ class Args:
     """M, rewarded episodes bought per iteration (by the Collector)"""
     reward_free_episodes: int = field(4, low=1)
     """reward-free episodes per candidate and repeat (the selector's M)"""
-    repeats: int = field(2, low=1)
-    """Z, J-values averaged into J'"""
     steps: int = field(200, low=1)
     """N, longest episode (StepCounter's max_steps; MountainCar's own limit is 200)"""
-    gamma: float = field(0.99, above=0.0, high=1.0)
-    """discount γ, in (0, 1]"""
-    lam: float = field(1e-3, above=0)
-    """λ, ridge regularisation"""
     grid: int = field(5, low=2)
     """Gaussian centres on a grid × grid lattice over the normalised (position, velocity) box"""
     tau: float = field(0.4, above=0)
@@ -58,55 +56,40 @@ class Args:
     """greedy test episodes of the policy after every iteration"""
 
 
+UNAVAILABLE = not_here("backend") | {
+    "trials": "one run of the pipeline, as a user would write it",
+    "device": "MountainCar steps in Python on the CPU (Gymnasium); the algebra is small",
+    "resume": "a run keeps no checkpoints; rerun it",
+}
+
+
 def parse_args(argv=None) -> Args:
-    return parse(
-        Args,
-        argv,
-        description=first_line(__doc__),
-        unavailable={
-            "trials": "one run of the pipeline, as a user would write it",
-            "device": "MountainCar steps in Python on the CPU (Gymnasium); the algebra is small",
-            "resume": "a run keeps no checkpoints; rerun it",
-            "backend": "one run in this process",
-        },
-    )
+    return parse(Args, argv, __doc__, unavailable=UNAVAILABLE)
 
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
 
-import dataclasses  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import time  # noqa: E402
-from functools import partial  # noqa: E402
-from pathlib import Path  # noqa: E402
+import dataclasses
+import json
+import logging
+import time
+from functools import partial
+from pathlib import Path
 
-import torch  # noqa: E402
-from tensordict.nn import TensorDictModule  # noqa: E402
-from torch import nn  # noqa: E402
-from torchrl.collectors import Collector  # noqa: E402
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer  # noqa: E402
-from torchrl.envs import (  # noqa: E402
-    Compose,
-    GymEnv,
-    ObservationNorm,
-    SerialEnv,
-    StepCounter,
-    TransformedEnv,
-)
-from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E402
-from torchrl.modules import OneHotCategorical, ProbabilisticActor  # noqa: E402
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose, GymEnv, ObservationNorm, SerialEnv, StepCounter, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
-from torch_api import (  # noqa: E402
-    GaussianActionBasis,
-    LinearQPolicy,
-    PsiHat,
-    SamplingPolicySelector,
-    as_episodes,
-    build_design,
-    weighted_ridge,
-)
+from torch_api import GaussianActionBasis, LinearQPolicy, PsiHat, SamplingPolicySelector
+from torch_api.design import build_design
+from torch_api.episodes import as_episodes
+from torch_api.solve import weighted_ridge
 
 ENV_ID = "MountainCar-v0"
 

@@ -7,6 +7,7 @@ flag answer at once; each test runs the script as a user would, in a subprocess.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import importlib.util
 import os
 import subprocess
@@ -72,17 +73,38 @@ def test_help_answers_fast_without_heavy_imports(script):
     assert "(default:" in done.stdout
 
 
+def _args_class(script: str) -> ast.ClassDef:
+    tree = ast.parse((EXAMPLES / script).read_text())
+    return next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Args")
+
+
+def _fields(script: str) -> set[str]:
+    """The options of a script: its ``Args`` fields and those of the ``_cli`` classes it
+    extends (``RunOptions``, ``ChunkOptions``)."""
+    args = _args_class(script)
+    names = {n.target.id for n in args.body if isinstance(n, ast.AnnAssign)}
+    for base in args.bases:
+        if isinstance(base, ast.Name) and hasattr(_cli, base.id):
+            names |= {f.name for f in dataclasses.fields(getattr(_cli, base.id))}
+    return names
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_every_option_has_help_text(script):
-    tree = ast.parse((EXAMPLES / script).read_text())
-    args = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Args")
-    body = args.body
+    body = _args_class(script).body
     for i, node in enumerate(body):
         if isinstance(node, ast.AnnAssign):
             after = body[i + 1] if i + 1 < len(body) else None
             assert isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant), (
                 f"{script}: option {node.target.id} has no help text"
             )
+
+
+def test_the_shared_run_options_have_help_text():
+    for options in (_cli.RunOptions, _cli.ChunkOptions):
+        docs = _cli.field_docs(options)
+        assert {f.name for f in dataclasses.fields(options)} <= set(docs), options.__name__
+        assert all(docs.values())
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -110,14 +132,7 @@ def test_an_unwritable_output_folder_is_one_line_before_any_work(script, tmp_pat
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_flag_the_script_cannot_honour_is_refused_with_the_reason(script):
-    tree = ast.parse((EXAMPLES / script).read_text())
-    fields = {
-        n.target.id
-        for c in tree.body
-        if isinstance(c, ast.ClassDef) and c.name == "Args"
-        for n in c.body
-        if isinstance(n, ast.AnnAssign)
-    }
+    fields = _fields(script)
     for name in ("trials", "seed", "out_dir", "device", "resume", "backend"):
         if name in fields:
             continue

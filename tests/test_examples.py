@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+from _harness import COLUMNS, read_results  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +57,7 @@ def _numbers(value):
 
 def _check_json(path: Path) -> dict:
     payload = json.loads(path.read_text())
-    numbers = list(_numbers(payload["results"] if "results" in payload else payload["runs"]))
+    numbers = list(_numbers(payload["summary"] if "summary" in payload else payload["results"]))
     assert numbers and all(math.isfinite(x) for x in numbers)
     return payload
 
@@ -72,6 +74,15 @@ def test_chain_walk_one_step(tmp_path):
         _check_png(tmp_path / name)
 
 
+def _check_csv(path: Path) -> dict:
+    """The long CSV of an experiment: its header, finite values; read back."""
+    with path.open() as fh:
+        rows = list(csv.reader(fh))
+    assert tuple(rows[0]) == COLUMNS
+    assert all(math.isfinite(float(row[-1])) for row in rows[1:])
+    return read_results(path)
+
+
 def test_chain_walk_api(tmp_path):
     out = _run(
         "chain_walk_api.py",
@@ -80,21 +91,18 @@ def test_chain_walk_api(tmp_path):
     )
     assert "Paired two-tailed t-test" in out
     payload = _check_json(tmp_path / "chain_walk_api.json")
+    results = _check_csv(tmp_path / "chain_walk_api.csv")
     for schedule in ("decreasing", "fixed"):
-        runs = payload["results"][schedule]["runs"]
-        assert set(runs) == {"AL", "PL"}
-        assert [it["iteration"] for it in runs["AL"]["iterations"]] == [0, 1, 2]
-        assert (
-            runs["AL"]["iterations"][-1]["rewarded_transitions"]
-            == sum(payload["results"][schedule]["schedule"]) * 10
-        )
-        assert all(c == 0 for c in runs["PL"]["iterations"][-1]["chosen"])
-    with (tmp_path / "chain_walk_api.csv").open() as fh:
-        rows = list(csv.DictReader(fh))
-    assert len(rows) == 2 * 2 * 3 * 2  # schedules × methods × iterations (0..2) × trials
-    for row in rows:
-        for key in ("test_return", "exact_return", "percent_optimal"):
-            assert math.isfinite(float(row[key]))
+        assert set(payload["summary"][schedule]["runs"]) == {"AL", "PL"}
+        iterations = {i for (s, m, i, _) in results if (s, m) == (schedule, "AL")}
+        assert iterations == {0, 1, 2}
+        bought = sum(payload["summary"][schedule]["schedule"]) * 10
+        assert results[schedule, "AL", 2, "rewarded_transitions"] == [bought, bought]
+        assert results[schedule, "PL", 2, "chosen"] == [0, 0]
+        for method in ("AL", "PL"):
+            for i in (0, 1, 2):
+                for key in ("test_return", "exact_return", "percent_optimal"):
+                    assert len(results[schedule, method, i, key]) == 2  # one value per trial
     _check_png(tmp_path / "fig8_performance.png")
     # --logger csv: TorchRL's CSVLogger, one file per curve, one "step,value" row per iteration
     curves = tmp_path / "logs" / "chain_walk_api" / "scalars"
@@ -110,13 +118,14 @@ def test_gym_drop_in(tmp_path):
         *("--test-episodes", "2", "--test-steps", "20", "--out-dir", str(tmp_path)),
     )
     payload = _check_json(tmp_path / "gym_drop_in.json")
-    assert set(payload["runs"]) == {"AL", "PL"}
-    for check in payload["data_checks"].values():
+    runs = payload["summary"]["custom"]["runs"]
+    assert set(runs) == {"AL", "PL"}
+    for run in runs.values():
+        check = run["data_check"]
         assert check["episodes"] == 2 * 4 and check["transitions"] > 0
-    with (tmp_path / "gym_drop_in.csv").open() as fh:
-        rows = list(csv.DictReader(fh))
-    assert len(rows) == 2 * 3 * 2  # methods × iterations (0..2) × trials
-    assert all(math.isfinite(float(row["steps_balanced"])) for row in rows)
+    results = _check_csv(tmp_path / "gym_drop_in.csv")
+    balanced = [v for (_, _, _, m), v in results.items() if m == "steps_balanced"]
+    assert len(balanced) == 2 * 3 and all(len(v) == 2 for v in balanced)  # methods × l = 0..2
     _check_png(tmp_path / "performance.png")
 
 
@@ -151,18 +160,24 @@ def _without_times(value):
     return value
 
 
+def _outputs(out: Path, name: str = "chain_walk_api") -> tuple[str, dict]:
+    """Every number of a run (its CSV) and its JSON summary, wall times and arguments left out."""
+    payload = json.loads((out / f"{name}.json").read_text())
+    return (out / f"{name}.csv").read_text(), _without_times(payload)
+
+
 @pytest.fixture(scope="module")
-def chain_walk_one_chunk(tmp_path_factory) -> dict:
+def chain_walk_one_chunk(tmp_path_factory) -> tuple[str, dict]:
     out = tmp_path_factory.mktemp("one_chunk")
     _run("chain_walk_api.py", *CHUNK_RUN, "--chunks", "1", "--out-dir", str(out))
-    return json.loads((out / "chain_walk_api.json").read_text())
+    return _outputs(out)
 
 
 def test_chain_walk_api_chunks_give_the_same_numbers(chain_walk_one_chunk, tmp_path):
     _run("chain_walk_api.py", *CHUNK_RUN, "--chunks", "3", "--out-dir", str(tmp_path))
-    chunked = json.loads((tmp_path / "chain_walk_api.json").read_text())
-    assert _without_times(chunked) == _without_times(chain_walk_one_chunk)
-    assert len(chunked["results"]["decreasing"]["runs"]["AL"]["iterations"][-1]["chosen"]) == 3
+    assert _outputs(tmp_path) == chain_walk_one_chunk
+    chosen = read_results(tmp_path / "chain_walk_api.csv")["decreasing", "AL", 2, "chosen"]
+    assert len(chosen) == 3
 
 
 def test_chain_walk_api_in_worker_processes_gives_the_local_numbers(chain_walk_one_chunk, tmp_path):
@@ -171,8 +186,7 @@ def test_chain_walk_api_in_worker_processes_gives_the_local_numbers(chain_walk_o
         *CHUNK_RUN,
         *("--backend", "processes", "--workers", "2", "--chunks", "2", "--out-dir", str(tmp_path)),
     )
-    in_processes = json.loads((tmp_path / "chain_walk_api.json").read_text())
-    assert _without_times(in_processes) == _without_times(chain_walk_one_chunk)
+    assert _outputs(tmp_path) == chain_walk_one_chunk
 
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
@@ -186,8 +200,7 @@ def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp
         *("--backend", "ray", "--chunks", "2", "--ray-cpus", "2", "--out-dir", str(tmp_path)),
     )
     assert "4 chunks" in out  # (AL, PL) × 2 chunks, as Ray tasks
-    on_ray = json.loads((tmp_path / "chain_walk_api.json").read_text())
-    assert _without_times(on_ray) == _without_times(chain_walk_one_chunk)
+    assert _outputs(tmp_path) == chain_walk_one_chunk
     _check_png(tmp_path / "fig8_performance.png")
 
 
@@ -249,8 +262,7 @@ def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_on
     assert again.returncode == 1 and "add --resume to continue them or --overwrite" in err
     out = _run("chain_walk_api.py", *args, "--resume")
     assert "resumed" in out and "decreasing_AL.db at iteration" in out
-    resumed = json.loads((tmp_path / "chain_walk_api.json").read_text())
-    assert _without_times(resumed) == _without_times(chain_walk_one_chunk)
+    assert _outputs(tmp_path) == chain_walk_one_chunk
 
 
 def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
@@ -258,7 +270,7 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     args += ("--test-episodes", "2", "--test-steps", "20")
     fresh = _run("gym_drop_in.py", *args, "--out-dir", str(tmp_path / "ref"), "--resume")
     assert "starting it fresh" in fresh
-    expected = json.loads((tmp_path / "ref" / "gym_drop_in.json").read_text())
+    expected = _outputs(tmp_path / "ref", "gym_drop_in")
     args += ("--out-dir", str(tmp_path))
     proc = _start("gym_drop_in.py", *args)
     _wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
@@ -269,5 +281,4 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert "Traceback" not in err and last.startswith("interrupted at iteration "), err[-3000:]
     assert last.endswith(f"stored in {tmp_path / 'checkpoints'}; continue with --resume")
     _run("gym_drop_in.py", *args, "--resume")
-    resumed = json.loads((tmp_path / "gym_drop_in.json").read_text())
-    assert _without_times(resumed["runs"]) == _without_times(expected["runs"])
+    assert _outputs(tmp_path, "gym_drop_in") == expected

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -16,16 +15,22 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "examples" / "train_batting.py"
+DRIVER = ROOT / "tests" / "batting_driver.py"  # the script, stopped abruptly at the K-th commit
 TINY = ["--trials", "2", "--iterations", "2", "--episodes", "2", "--repeats", "2", "--seed", "3"]
 STEPS = 10  # N of the batting task
 MODES = ("active", "passive")
-INTERRUPTED = 3  # exit code of the script's --stop-after-checkpoints testing aid
+INTERRUPTED = 3  # exit code of the driver when it stopped the run
+
+sys.path.insert(0, str(ROOT / "examples"))
+from _harness import read_results  # noqa: E402
 
 
-def run_script(out_dir: Path, *extra: str) -> subprocess.CompletedProcess:
+def run_script(out_dir: Path, *extra: str, stop_after: int = 0) -> subprocess.CompletedProcess:
+    """The script with ``extra`` flags; ``stop_after`` > 0: ended after that many commits."""
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    command = [str(DRIVER), str(stop_after)] if stop_after else [str(SCRIPT)]
     return subprocess.run(
-        [sys.executable, str(SCRIPT), *TINY, "--out-dir", str(out_dir), *extra],
+        [sys.executable, *command, *TINY, "--out-dir", str(out_dir), *extra],
         cwd=ROOT,
         env=env,
         capture_output=True,
@@ -34,14 +39,9 @@ def run_script(out_dir: Path, *extra: str) -> subprocess.CompletedProcess:
     )
 
 
-def numbers(payload: dict) -> dict:
-    """Everything a resumed run must reproduce exactly (wall times excluded)."""
-    keep = ("performance", "hit_share", "chosen", "sampling_epsilon", "j_prime")
-    keep += ("episodes_bought", "rewarded_transitions", "reward_free_transitions")
-    return {
-        name: {mode: {k: run[k] for k in keep} for mode, run in res["runs"].items()}
-        for name, res in payload["results"].items()
-    }
+def numbers(out_dir: Path) -> str:
+    """Everything a resumed run must reproduce exactly: every per-trial number (the CSV)."""
+    return (out_dir / "train_batting.csv").read_text()
 
 
 @pytest.fixture(scope="module")
@@ -55,23 +55,26 @@ def test_outputs_exist_and_rewards_match_schedule(uninterrupted):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "paired t-test AL vs PL at iteration 2" in proc.stdout
     payload = json.loads((out / "train_batting.json").read_text())
-    runs = payload["results"]["decreasing"]["runs"]
-    assert set(runs) == {"active", "passive"}
-    for mode, run in runs.items():
-        assert run["episodes_bought"] == [2, 2]
-        assert run["rewarded_transitions"] == [2 * STEPS, 4 * STEPS]  # per trial, cumulative
-        for row in run["performance"]:
-            assert len(row) == 2 and all(math.isfinite(x) and x >= 0 for x in row)
-        if mode == "active":
-            assert all(len(j) == 2 and len(j[0]) == 4 for j in run["j_prime"])
-            assert all(math.isfinite(x) and x >= 0 for j in run["j_prime"] for t in j for x in t)
-            assert run["reward_free_transitions"] == [2 * 4 * 2 * STEPS, 2 * 2 * 4 * 2 * STEPS]
+    assert set(payload["summary"]["decreasing"]["runs"]) == {"AL", "PL"}
+    results = read_results(out / "train_batting.csv")
+    for method in ("AL", "PL"):
+        run = {(i, m): v for (s, me, i, m), v in results.items() if me == method}
+        assert [run[i, "episodes_bought"] for i in (1, 2)] == [[2, 2], [2, 2]]
+        # per trial, cumulative
+        assert [run[i, "rewarded_transitions"] for i in (1, 2)] == [[20, 20], [40, 40]]
+        for i in (1, 2):
+            assert len(run[i, "performance"]) == 2
+            assert all(math.isfinite(x) and x >= 0 for x in run[i, "performance"])
+        j = [run.get((i, f"j_mean_k{k}")) for i in (1, 2) for k in range(1, 5)]
+        if method == "AL":
+            assert all(len(v) == 2 and all(math.isfinite(x) and x >= 0 for x in v) for v in j)
+            free = [run[i, "reward_free_transitions"][0] for i in (1, 2)]
+            assert free == [2 * 4 * 2 * STEPS, 2 * 2 * 4 * 2 * STEPS]
         else:
-            assert run["chosen"] == [[0, 0], [0, 0]] and run["j_prime"] == [None, None]
-    with open(out / "train_batting.csv") as handle:
-        rows = list(csv.DictReader(handle))
-    assert len(rows) == 1 * 2 * 2 * 2  # schedule × method × iteration × trial
-    assert all(math.isfinite(float(r["performance"])) for r in rows)
+            assert [run[i, "chosen"] for i in (1, 2)] == [[0, 0], [0, 0]] and j == [None] * 8
+    rows = (out / "train_batting.csv").read_text().splitlines()
+    assert rows[0] == "schedule,method,seed,iteration,trial,measure,value"
+    assert len(rows) - 1 == sum(len(v) for v in results.values())
     assert (out / "fig10_performance.png").stat().st_size > 1000
 
 
@@ -80,12 +83,12 @@ def test_interrupted_and_resumed_run_matches(uninterrupted, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     # Stop right after the AL run bought its second batch (commits: selection, episodes,
     # iteration; selection, episodes).
-    first = run_script(tmp_path, "--stop-after-checkpoints", "5")
+    first = run_script(tmp_path, stop_after=5)
     assert first.returncode == INTERRUPTED, first.stderr[-3000:]
     assert not (tmp_path / "train_batting.json").exists()
     # Resume: AL fits iteration 2 without buying again (1), PL selects (2), buys (3) and fits
     # (4), stop.
-    second = run_script(tmp_path, "--resume", "--stop-after-checkpoints", "4")
+    second = run_script(tmp_path, "--resume", stop_after=4)
     assert second.returncode == INTERRUPTED, second.stderr[-3000:]
     assert "decreasing_active.db at iteration 1/2" in second.stdout
     # Resume again: AL is complete and is not recomputed; PL continues from iteration 1.
@@ -93,11 +96,12 @@ def test_interrupted_and_resumed_run_matches(uninterrupted, tmp_path):
     assert third.returncode == 0, third.stderr[-3000:]
     assert "decreasing_active.db at iteration 2/2" in third.stdout
     assert "decreasing_passive.db at iteration 1/2" in third.stdout
-    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
-    resumed = numbers(json.loads((tmp_path / "train_batting.json").read_text()))
+    expected = numbers(reference)
+    resumed = numbers(tmp_path)
     assert resumed == expected
-    for run in resumed["decreasing"].values():  # no rewarded episode bought twice
-        assert run["rewarded_transitions"][-1] == (2 + 2) * STEPS
+    bought = read_results(tmp_path / "train_batting.csv")  # no rewarded episode bought twice
+    for method in ("AL", "PL"):
+        assert bought["decreasing", method, 2, "rewarded_transitions"] == [(2 + 2) * STEPS] * 2
 
 
 def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
@@ -109,8 +113,8 @@ def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
     names = sorted(p.name for p in (tmp_path / "checkpoints").glob("*.db"))
     expected_names = [f"decreasing_{m}_chunk{c}of2.db" for m in MODES for c in (1, 2)]
     assert names == expected_names
-    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
-    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+    expected = numbers(reference)
+    assert numbers(tmp_path) == expected
 
 
 def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
@@ -118,15 +122,15 @@ def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     # Commits: AL chunk 1 selects, buys, fits, selects, buys (5); stop. Resume: chunk 1
     # continues, chunk 2 anew.
-    first = run_script(tmp_path, "--chunks", "2", "--stop-after-checkpoints", "5")
+    first = run_script(tmp_path, "--chunks", "2", stop_after=5)
     assert first.returncode == INTERRUPTED, first.stderr[-3000:]
     second = run_script(tmp_path, "--chunks", "2", "--resume")
     assert second.returncode == 0, second.stderr[-3000:]
     assert "decreasing_active_chunk1of2.db at iteration 1/2" in second.stdout
     assert "nothing stored in" in second.stdout  # chunk 2 had not started: it starts fresh
     assert "decreasing_active_chunk2of2.db: starting it fresh" in second.stdout
-    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
-    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+    expected = numbers(reference)
+    assert numbers(tmp_path) == expected
 
 
 def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrupted, tmp_path):
@@ -139,16 +143,16 @@ def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrup
     assert done.returncode == 0, done.stderr[-3000:]
     expected = json.loads((reference / "train_batting.json").read_text())
     payload = json.loads((tmp_path / "train_batting.json").read_text())
-    assert numbers(payload) == numbers(expected)
+    assert numbers(tmp_path) == numbers(reference)
     assert payload["physics_steps"] == expected["physics_steps"]
-    runs = payload["results"]["decreasing"]["runs"].values()
+    runs = payload["summary"]["decreasing"]["runs"].values()
     for kind in ("coarse", "fine"):
         assert payload["physics_steps"][kind] == sum(r["physics_steps"][kind] for r in runs)
     assert payload["physics_steps"]["coarse"] > 0
 
 
 def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_path):
-    first = run_script(tmp_path, "--stop-after-checkpoints", "2")  # iteration 1 bought
+    first = run_script(tmp_path, stop_after=2)  # iteration 1 bought
     assert first.returncode == INTERRUPTED
     stored = (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes()
     again = run_script(tmp_path)
@@ -158,7 +162,7 @@ def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_pa
     assert (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes() == stored
     both = run_script(tmp_path, "--resume", "--overwrite")
     assert both.returncode == 2 and "exclude each other" in both.stderr
-    fresh = run_script(tmp_path, "--overwrite", "--stop-after-checkpoints", "1")  # a selection
+    fresh = run_script(tmp_path, "--overwrite", stop_after=1)  # a selection
     assert fresh.returncode == INTERRUPTED, fresh.stderr[-3000:]
     from torch_api.store import RunStore
 
@@ -233,8 +237,8 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
     assert last.endswith(f"episodes stored in {tmp_path / 'checkpoints'}; continue with --resume")
     done = run_script(tmp_path, "--resume")
     assert done.returncode == 0, done.stderr[-3000:]
-    expected = numbers(json.loads((reference / "train_batting.json").read_text()))
-    assert numbers(json.loads((tmp_path / "train_batting.json").read_text())) == expected
+    expected = numbers(reference)
+    assert numbers(tmp_path) == expected
 
     out = tmp_path / "processes"
     parent = subprocess.Popen(
@@ -275,8 +279,8 @@ def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
     proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
-    payload = json.loads((tmp_path / "train_batting.json").read_text())
-    for run in payload["results"]["decreasing"]["runs"].values():
-        assert run["rewarded_transitions"][-1] <= 4 * STEPS
+    bought = read_results(tmp_path / "train_batting.csv")
+    for method in ("AL", "PL"):
+        assert max(bought["decreasing", method, 2, "rewarded_transitions"]) <= 4 * STEPS
     bad = run_script(tmp_path / "bad", "--basis-widths", "1,2,3")
     assert bad.returncode == 2 and "--basis-widths must be four positive numbers" in bad.stderr
