@@ -33,6 +33,7 @@ __all__ = [
     "has_block_seeds",
     "seed_env",
     "slice_seed",
+    "spawn_seed",
 ]
 
 
@@ -111,6 +112,18 @@ def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
     one episode at a time (``rewarded_slice="episode"``): a resume continues at any episode."""
     entropy = [int(seed) & 0xFFFFFFFF, int(iteration), SLICE_STREAMS[stream], int(episode)]
     return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def spawn_seed(stream: torch.Generator | None) -> int:
+    """The seed of a new stream drawn from ``stream`` (one draw in ``[0, 2**62)``; None: torch's
+    global generator), e.g. a worker's where the policy has no stream per trial.
+
+    Example:
+        >>> a, b = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+        >>> spawn_seed(a) == spawn_seed(b) != spawn_seed(a)
+        True
+    """
+    return int(torch.randint(2**62, (), generator=stream))
 
 
 class TrialStreams:
