@@ -101,7 +101,7 @@ _GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, Expl
 class ActionProbsPolicy(TensorDictModuleBase):
     """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
 
-    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, draws an
+    Subclasses implement ``_action_probs``. ``forward`` reads the observation, draws an
     action and writes ``action`` in the env's encoding and ``sample_probs`` (the distribution
     the action was drawn from, ``[..., A]``, float64).
 
