@@ -110,10 +110,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
             per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
-        seed: seed of the run: every stream of iteration l (policies, ``env.set_seed``) is
-            derived from ``(seed, l, role)`` (:class:`~torch_api.streams.TrialStreams`). Active
-            and passive runs of one seed share the rewarded episodes' streams (the reward-free
-            rollouts draw from streams of their own): a pair differs only by the sampling policy.
+        seed: seed of the run: the policies' sampling streams (fresh for each use) and the
+            envs' seeds (``env.set_seed``) of iteration l are derived from ``(seed, l, role)``
+            (:class:`~torch_api.streams.TrialStreams`). Active and passive runs of one seed share
+            the rewarded episodes' streams (the reward-free rollouts draw from streams of their
+            own): a pair differs only by the sampling policy.
         trial_seeds: with ``num_trials``, one seed per trial (default: derived from ``seed``).
             Each trial then draws from streams of its own, seeded from ``(trial_seed, l)``: the
             policies' sampling and, for environments with ``set_block_seeds`` (this project's
