@@ -191,6 +191,8 @@ def test_streams_are_fixed_when_a_policy_is_made():
     streams = [torch.Generator().manual_seed(s) for s in (1, 2)]
     seeded = policy.with_streams(streams)
     assert policy.streams is None and seeded.block_generators == tuple(streams)
+    seeded.to(torch.float32)  # a copy's registries are its own: the original keeps float64 θ
+    assert policy.theta.dtype == torch.float64 and seeded.theta.dtype == torch.float32
     assert seeded.trial_slice(slice(1, 2)).block_generators == (streams[1],)
     assert seeded.with_rule(epsilon=0.2).streams == seeded.to_device("cpu").streams
     with pytest.raises(ValueError, match="streams must be"):

@@ -118,8 +118,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
             per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
-        seed: seed of the run. Each iteration re-seeds the policies' stream and the
-            environments (``env.set_seed``) from ``(seed, l)`` (:func:`derive_seed`); runs with
+        seed: seed of the run. Each iteration derives the policies' sampling streams (fresh
+            for each use) and seeds the envs (``env.set_seed``) from ``(seed, l)``; runs with
             the same seed in active and passive mode share the rewarded environments' streams
             and the sampling streams of the rewarded episodes (a paired design): the reward-free
             rollouts of the active mode draw their actions from streams of their own

@@ -39,11 +39,9 @@ from torch_api.buffer import validate_episodes
 from torch_api.episodes import _episodes_from_rollout
 from torch_api.lifetime import die_with_parent
 from torch_api.policy_base import param_dims_of
-from torch_api.streams import seed_env
+from torch_api.streams import seed_env, spawn_seed
 
 __all__ = ["collect_episodes_in_workers"]
-
-_SEED_RANGE = 2**62
 
 
 class _WorkerPolicy:
@@ -163,11 +161,7 @@ def collect_episodes_in_workers(
         if blocks > 1 and (trial_dims or streams is not None):
             piece = policy.trial_slice(slice(part.start, part.stop))
         # one stream per trial: the worker draws from its trials' streams; else a fresh seed
-        seed = (
-            None
-            if streams is not None
-            else int(torch.randint(_SEED_RANGE, (), generator=policy.generator))
-        )
+        seed = None if streams is not None else spawn_seed(policy.generator)
         policy_factories.append(_WorkerPolicy(piece, seed))
         block_seeds = None if env_block_seeds is None else env_block_seeds[part.start : part.stop]
         env_factories.append(_WorkerEnv(make_env, len(part) * per_block, env_seed + w, block_seeds))

@@ -101,7 +101,7 @@ _GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, Expl
 class ActionProbsPolicy(TensorDictModuleBase):
     """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
 
-    Subclasses implement :meth:`action_probs`. ``forward`` reads the observation, draws an
+    Subclasses implement ``_action_probs``. ``forward`` reads the observation, draws an
     action and writes ``action`` in the env's encoding and ``sample_probs`` (the distribution
     the action was drawn from, ``[..., A]``, float64).
 
@@ -174,8 +174,16 @@ class ActionProbsPolicy(TensorDictModuleBase):
     def with_streams(self, streams: Streams) -> ActionProbsPolicy:
         """The same policy (parameters, rule, encoding) sampling from ``streams``: one
         generator, or one per block of rows (e.g. per trial); the original keeps its own."""
-        other = copy.copy(self)  # shares θ and the basis
+        other = self._copy()
         other._streams = _check_streams(streams)
+        return other
+
+    def _copy(self) -> ActionProbsPolicy:
+        """A shallow copy sharing θ and the basis but not the module's registries (so that
+        ``copy.to(...)`` or a new buffer of the copy leaves the original as it is)."""
+        other = copy.copy(self)
+        for name in ("_parameters", "_buffers", "_modules"):
+            other.__dict__[name] = dict(self.__dict__[name])
         return other
 
     def _io_kwargs(self, trials: slice | None = None) -> dict:
@@ -227,7 +235,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
         encoding = _encoding(action_spec, self.num_actions, self.one_hot)
         if encoding == self.action_encoding:
             return self
-        other = copy.copy(self)  # shares θ, the basis and the generators
+        other = self._copy()  # shares θ, the basis and the streams
         other.action_encoding = encoding
         other.one_hot = encoding.one_hot
         return other

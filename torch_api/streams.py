@@ -33,6 +33,7 @@ __all__ = [
     "has_block_seeds",
     "seed_env",
     "slice_seed",
+    "spawn_seed",
 ]
 
 
@@ -113,6 +114,18 @@ def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
     return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
+def spawn_seed(stream: torch.Generator | None) -> int:
+    """The seed of a new stream drawn from ``stream`` (one draw in ``[0, 2**62)``; None: torch's
+    global generator), e.g. a worker's where the policy has no stream per trial.
+
+    Example:
+        >>> a, b = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+        >>> spawn_seed(a) == spawn_seed(b) != spawn_seed(a)
+        True
+    """
+    return int(torch.randint(2**62, (), generator=stream))
+
+
 class TrialStreams:
     """The one place a run's random streams come from: (seed, trial, iteration, role).
 
@@ -136,7 +149,7 @@ class TrialStreams:
         >>> seed, blocks = streams.env_seeds(1, "rewarded_env")
         >>> blocks == [derive_seed(11, 1, "rewarded_env"), derive_seed(22, 1, "rewarded_env")]
         True
-        >>> len(streams.block_generators(1, "policy"))
+        >>> len(streams.generators(1, "policy"))  # one per trial
         2
         >>> a, b = streams.generators(1, "policy"), streams.generators(1, "policy")
         >>> torch.equal(torch.rand(3, generator=a[0]), torch.rand(3, generator=b[0]))
@@ -173,27 +186,16 @@ class TrialStreams:
             raise ValueError("block_seeds needs a run with num_trials")
         return [derive_seed(s, iteration, role) for s in self.trial_seeds]
 
-    def block_generators(self, iteration: int, role: str) -> list[torch.Generator] | None:
-        """One generator per trial for ``role`` in iteration l, or None without trials."""
-        if self.trial_seeds is None:
-            return None
-        return [torch.Generator().manual_seed(s) for s in self.block_seeds(iteration, role)]
-
     def generators(self, iteration: int, role: str) -> torch.Generator | list[torch.Generator]:
         """Fresh sampling streams of ``role`` in iteration l, for ``policy.with_streams``: one
         generator per trial in a run with trials, else one for the run."""
-        if self.trial_seeds is None:
-            return torch.Generator().manual_seed(self.run_seed(iteration, role))
-        return self.block_generators(iteration, role)
+        return _fresh(*self.env_seeds(iteration, role))
 
     def slice_generators(
         self, iteration: int, episode: int, role: str
     ) -> torch.Generator | list[torch.Generator]:
         """Fresh sampling streams of ``role`` for rewarded episode m of iteration l."""
-        seed, blocks = self.slice_seeds(iteration, episode, role)
-        if blocks is None:
-            return torch.Generator().manual_seed(seed)
-        return [torch.Generator().manual_seed(s) for s in blocks]
+        return _fresh(*self.slice_seeds(iteration, episode, role))
 
     def env_seeds(self, iteration: int, role: str) -> tuple[int, list[int] | None]:
         """The run's seed and, with trials, the per-trial seeds of an env's ``role``."""
@@ -206,3 +208,10 @@ class TrialStreams:
         if self.trial_seeds is not None:
             blocks = [slice_seed(s, iteration, episode, role) for s in self.trial_seeds]
         return slice_seed(self.seed, iteration, episode, role), blocks
+
+
+def _fresh(seed: int, block_seeds: Sequence[int] | None) -> torch.Generator | list:
+    """New generators: one seeded with ``seed``, or one per block seed."""
+    if block_seeds is None:
+        return torch.Generator().manual_seed(seed)
+    return [torch.Generator().manual_seed(s) for s in block_seeds]
