@@ -51,11 +51,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(ChunkOptions):
+class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the iterated chain-walk experiment."""
 
     trials: int = field(1000, low=2, why="(a paired t-test needs two)")

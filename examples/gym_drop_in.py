@@ -52,11 +52,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import RunOptions, field, parse
+from _cli import RunOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(RunOptions):
+class Args(SelectionOptions, RunOptions):
     """Command-line arguments of the CartPole drop-in demo."""
 
     trials: int = field(8, low=2, why="(a paired t-test needs two)")

@@ -64,11 +64,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(ChunkOptions):
+class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the batting experiment."""
 
     trials: int = field(32, low=1)
