@@ -20,9 +20,10 @@ honour one of them declares it in ``unavailable``: the flag is refused with the 
 silently ignored.
 
 The options of the paired experiments are declared once: :class:`RunOptions` (``--trials``,
-``--seed``, ``--out-dir``, ``--resume``, ``--overwrite``, ``--threads``, ``--logger``) and
+``--seed``, ``--out-dir``, ``--resume``, ``--overwrite``, ``--threads``, ``--logger``),
 :class:`ChunkOptions` (those and ``--device``, ``--backend``, ``--chunks``, ``--workers``,
-``--ray-address``, ``--ray-cpus``); a script's ``Args`` extends one of them.
+``--ray-address``, ``--ray-cpus``) and :class:`SelectionOptions` (``--repeats``, ``--lam``);
+a script's ``Args`` extends those it takes.
 
 Validation is declarative where it can be: ``field(default, low=1)``, ``choices=...``; the
 rest goes into a script's ``check(args)`` that returns the first problem as one line. Every
@@ -90,9 +91,11 @@ class SelectionOptions:
 
 
 @dataclasses.dataclass
-class RunOptions(SelectionOptions):
+class RunOptions:
     """The options of every paired experiment (AL and PL runs on the same seeds, stored as they
-    go) and the selection's settings."""
+    go). A script's ``Args`` extends it (and :class:`SelectionOptions`: ``class
+    Args(SelectionOptions, RunOptions)`` lists the run options first in ``--help``), declaring a
+    field again where its default differs."""
 
     trials: int = field(2, low=2, why="(a paired t-test needs two)")
     """independent trials, all run as one batch"""

@@ -288,6 +288,36 @@ def paired_test(al, pl) -> dict:
     }
 
 
+def print_curves(results: dict, measure: str, title: str, digits: int = 4) -> None:
+    """A table of ``measure``: one row per schedule and method, mean ± s.e. over trials at
+    each iteration."""
+    first = next(iter(results.values()))["runs"]["AL"]["iterations"]
+    print(f"\n{title}")
+    heads = " ".join(f"{'l=' + str(it['iteration']):>15}" for it in first)
+    print(f"{'schedule':<11} {'method':<6} {heads}")
+    for name, entry in results.items():
+        for method, run in entry["runs"].items():
+            cells = (mean_se(it[measure]) for it in run["iterations"])
+            row = " ".join(f"{f'{m:8.{digits}f}±{se:6.{digits}f}':>15}" for m, se in cells)
+            print(f"{name:<11} {method:<6} {row}")
+
+
+def print_t_tests(results: dict, trials: int) -> None:
+    """The paired two-tailed t-tests of AL vs PL at the last iteration, one row per measure."""
+    print(f"\nPaired two-tailed t-test, AL vs PL at the last iteration ({trials} pairs)")
+    print(
+        f"{'schedule':<11} {'measure':<21} {'mean(AL-PL)':>12} {'t':>8} {'p':>10} "
+        f"{'AL>PL':>6} {'AL<PL':>6}"
+    )
+    for name, entry in results.items():
+        for measure, t in entry["t_tests"].items():
+            stat = "undefined" if t["t"] is None else f"{t['t']:8.3f} {t['p']:10.3g}"
+            print(
+                f"{name:<11} {measure:<21} {t['mean_difference']:12.5f} {stat:>19} "
+                f"{t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
+            )
+
+
 # -- files -----------------------------------------------------------------------------------
 
 

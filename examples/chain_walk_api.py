@@ -51,11 +51,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(ChunkOptions):
+class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the iterated chain-walk experiment."""
 
     trials: int = field(1000, low=2, why="(a paired t-test needs two)")
@@ -185,38 +185,6 @@ def run_chunk(chunk: harness.Chunk) -> dict:
     return harness.run_iterations(chunk, api, initial=evaluate(first))  # pi_1: iteration 0
 
 
-def print_table(results: dict, args: Args, wall: float) -> None:
-    trials = args.trials
-    print(f"\nIterated chain walk: {trials} trials, mean ± s.e. over trials ({wall:.1f} s wall)")
-    for measure, title in (
-        ("test_return", "performance of pi_{l+1}, eq. 61 (50 test episodes of 50 steps)"),
-        ("percent_optimal", "exact expected return of pi_{l+1}, % of the optimal policy"),
-    ):
-        print(f"\n{title}")
-        iters = [it["iteration"] for it in next(iter(results.values()))["runs"]["AL"]["iterations"]]
-        print(f"{'schedule':<11} {'method':<6} " + " ".join(f"{'l=' + str(i):>15}" for i in iters))
-        for name, res in results.items():
-            for method, run in res["runs"].items():
-                cells = []
-                for it in run["iterations"]:
-                    m, se = harness.mean_se(it[measure])
-                    digits = 4 if measure != "percent_optimal" else 2
-                    cells.append(f"{m:8.{digits}f}±{se:6.{digits}f}")
-                print(f"{name:<11} {method:<6} " + " ".join(f"{c:>15}" for c in cells))
-    print(f"\nPaired two-tailed t-test, AL vs PL at iteration {args.iterations} ({trials} pairs)")
-    print(
-        f"{'schedule':<11} {'measure':<13} {'mean(AL-PL)':>12} {'t':>8} {'p':>10} "
-        f"{'AL>PL':>6} {'AL<PL':>6}"
-    )
-    for name, res in results.items():
-        for measure, t in res["t_tests"].items():
-            stat = "undefined" if t["t"] is None else f"{t['t']:8.3f} {t['p']:10.3g}"
-            print(
-                f"{name:<11} {measure:<13} {t['mean_difference']:12.5f} {stat:>19} "
-                f"{t['al_better_share']:6.2f} {t['al_worse_share']:6.2f}"
-            )
-
-
 def main(argv=None) -> dict:
     args = parse_args(argv)
     names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
@@ -230,7 +198,13 @@ def main(argv=None) -> dict:
         extra={"optimal_exact_return": optimal_return(args.test_steps)},
     )
     results, wall = harness.run_experiment(args, experiment)
-    print_table(results, args, wall)
+    print(f"\nIterated chain walk: {args.trials} trials, mean ± s.e. over trials ({wall:.1f} s)")
+    test = f"{args.test_episodes} test episodes of {args.test_steps} steps"
+    title = f"performance of pi_{{l+1}}, eq. 61 ({test})"
+    harness.print_curves(results, "test_return", title)
+    title = "exact expected return of pi_{l+1}, % of the optimal policy"
+    harness.print_curves(results, "percent_optimal", title, digits=2)
+    harness.print_t_tests(results, args.trials)
     payload = harness.write_results(args, experiment, results, wall)
     figure8(results, payload["optimal_exact_return"], Path(args.out_dir) / "fig8_performance.png")
     print(f"wrote {args.out_dir}/chain_walk_api.json, chain_walk_api.csv and fig8_performance.png")

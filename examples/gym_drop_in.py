@@ -52,11 +52,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import RunOptions, field, parse
+from _cli import RunOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(RunOptions):
+class Args(SelectionOptions, RunOptions):
     """Command-line arguments of the CartPole drop-in demo."""
 
     trials: int = field(8, low=2, why="(a paired t-test needs two)")
@@ -241,30 +241,6 @@ def run_chunk(chunk: harness.Chunk) -> dict:
     return run | {"data_check": check_episodes(api.rewarded.episodes())}
 
 
-def print_table(runs: dict, args: Args, test: dict, wall: float) -> None:
-    print(
-        f"\n{ENV_ID}: {args.trials} trials, steps balanced (of {args.test_steps}) by pi_(l+1), "
-        f"mean ± s.e. ({wall:.1f} s wall)"
-    )
-    print(
-        f"{'method':<7} {'rule':<9} "
-        + " ".join(f"{'l=' + str(it['iteration']):>12}" for it in runs["AL"]["iterations"])
-    )
-    for method, run in runs.items():
-        for key, rule in zip(MEASURES, ("ε-greedy", "greedy"), strict=True):
-            cells = [
-                f"{m:6.1f}±{se:5.1f}"
-                for m, se in (harness.mean_se(it[key]) for it in run["iterations"])
-            ]
-            print(f"{method:<7} {rule:<9} " + " ".join(f"{c:>12}" for c in cells))
-        chosen = [np.bincount(it["chosen"], minlength=4).tolist() for it in run["iterations"][1:]]
-        print(f"{method:<7} candidates chosen per iteration (counts of k = 1..4): {chosen}")
-    stat = "undefined" if test["t"] is None else f"t = {test['t']:.3f}, p = {test['p']:.3g}"
-    print(f"paired t-test AL vs PL at the last iteration (ε-greedy): {stat}")
-    for method, run in runs.items():
-        print(f"bought data ({method}): {run['data_check']}")
-
-
 def main(argv=None) -> dict:
     args = parse_args(argv)
     experiment = harness.Experiment(
@@ -276,8 +252,15 @@ def main(argv=None) -> dict:
         curves=MEASURES,
     )
     results, wall = harness.run_experiment(args, experiment)
-    entry = results["custom"]
-    print_table(entry["runs"], args, entry["t_tests"]["steps_balanced"], wall)
+    print(f"\n{ENV_ID}: {args.trials} trials, mean ± s.e. over trials ({wall:.1f} s)")
+    title = f"steps balanced (of {args.test_steps}) by pi_(l+1), its ε-greedy rule"
+    harness.print_curves(results, "steps_balanced", title, digits=1)
+    harness.print_curves(results, "steps_balanced_greedy", "the same, greedy", digits=1)
+    for method, run in results["custom"]["runs"].items():
+        chosen = [np.bincount(it["chosen"], minlength=4).tolist() for it in run["iterations"][1:]]
+        print(f"{method}: candidates chosen per iteration (counts of k = 1..4): {chosen}")
+        print(f"{method}: bought data {run['data_check']}")
+    harness.print_t_tests(results, args.trials)
     payload = harness.write_results(args, experiment, results, wall)
     steps_balanced(results, ENV_ID, Path(args.out_dir) / "performance.png")
     print(f"wrote {args.out_dir}/gym_drop_in.json, gym_drop_in.csv and performance.png")

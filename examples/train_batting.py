@@ -64,11 +64,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(ChunkOptions):
+class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the batting experiment."""
 
     trials: int = field(32, low=1)
@@ -140,12 +140,11 @@ from pathlib import Path
 
 import _harness as harness
 import numpy as np
-import torch
+from _batting_basis import make_basis
 from _figures import figure10
 from _physics_audit import PhysicsAudit
 
-from envs.batting import BASIS_TAU, MAX_STEPS, N_ACTIONS, BattingEnv, basis_centers
-from torch_api.basis import GaussianActionBasis
+from envs.batting import MAX_STEPS, BattingEnv
 from torch_api.data import REWARD_KEY, collect_episodes
 from torch_api.dispatch import threads_per_worker
 from torch_api.iteration import derive_seed
@@ -167,62 +166,32 @@ def schedule_of(args: Args, name: str) -> list[int]:
     return [args.episodes] * len(base) if args.episodes else list(base)
 
 
-class ScaledGaussianBasis(GaussianActionBasis):
-    """Gaussian kernels with one width per state dimension: ``exp(-Σ_d (s_d - c_d)² / 2w_d²)``.
-
-    The paper's kernel (eq. 64) on coordinates divided by the widths ``w [d]`` (τ = 1 there).
-    """
-
-    def __init__(self, *, centers: torch.Tensor, widths, num_actions: int) -> None:
-        widths = torch.as_tensor(widths, dtype=torch.float64)
-        super().__init__(
-            centers=centers / widths.to(centers.dtype), tau=1.0, num_actions=num_actions
-        )
-        self.register_buffer("widths", widths)
-
-    def kernels(self, obs: torch.Tensor) -> torch.Tensor:
-        return super().kernels(obs / self.widths.to(device=obs.device, dtype=obs.dtype))
-
-
-def make_basis(widths: list[float] | None = None) -> GaussianActionBasis:
-    """The paper's 54 Gaussian centres, τ = 3π/2, and a constant, per action (B = 110); with
-    ``widths``, the same centres with one kernel width per state dimension (beyond the paper)."""
-    if widths is None:
-        return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
-    return ScaledGaussianBasis(centers=basis_centers(), widths=widths, num_actions=N_ACTIONS)
-
-
-class TestPerformance:
-    """Performance of a learned policy (eq. 68): Σ_m Σ_n r over 20 test episodes, per trial.
+def make_evaluator(trials: int, make_env):
+    """The ``evaluate`` callback: performance of pi_{l+1} (eq. 68), Σ_m Σ_n r over 20 test
+    episodes, and the share of them that hit the ball, per trial.
 
     The loop hands pi_{l+1} with one sampling stream per trial, seeded from
-    ``api.block_seeds(l, "evaluation")``. An environment with ``set_block_seeds`` gets one
-    stream per trial too, seeded from the same per-trial seeds (a stream apart): trial t's
-    performance then depends on (its seed, l) only. Otherwise the T·20 arms share one stream
-    seeded from the ``seed`` the loop passes (derived from the run's seed and l). Either way a
-    resumed run measures exactly what an uninterrupted one would.
+    ``api.block_seeds(l, "evaluation")``; the 20 test arms of trial t get one stream of their own
+    seeded from the same per-trial seed (a stream apart), so trial t's performance depends on
+    (its seed, l) only, and a resumed run measures exactly what an uninterrupted one would.
     """
+    env = None
 
-    def __init__(self, trials: int, make_env=BattingEnv) -> None:
-        self.trials = trials
-        self.make_env = make_env
-        self.env: BattingEnv | None = None
-
-    def __call__(self, policy: LinearQPolicy, seed: int) -> dict:
-        if self.env is None:
-            self.env = self.make_env(batch_size=self.trials * TEST_EPISODES, seed=seed)
-        if hasattr(self.env, "set_block_seeds"):
-            self.env.set_block_seeds(
-                [derive_seed(g.initial_seed(), 0, "evaluation") for g in policy.block_generators]
-            )
-        else:
-            self.env.set_seed(seed)
+    def evaluate(policy: LinearQPolicy, seed: int) -> dict:
+        nonlocal env
+        if env is None:
+            env = make_env(batch_size=trials * TEST_EPISODES, seed=seed)
+        env.set_block_seeds(
+            [derive_seed(g.initial_seed(), 0, "evaluation") for g in policy.block_generators]
+        )
         episodes = collect_episodes(
-            self.env, policy, num_episodes=TEST_EPISODES, num_steps=MAX_STEPS, rewarded=True
+            env, policy, num_episodes=TEST_EPISODES, num_steps=MAX_STEPS, rewarded=True
         )  # [T, 20, N]
         reward = episodes[REWARD_KEY] * episodes["mask"]
         hits = (reward > 0).any(-1).double().mean(-1)
         return {"performance": reward.sum((-2, -1)).tolist(), "hit_share": hits.tolist()}
+
+    return evaluate
 
 
 def run_chunk(chunk: harness.Chunk) -> dict:
@@ -268,7 +237,7 @@ def run_chunk(chunk: harness.Chunk) -> dict:
         psi_mode="single",
         fit=args.fit,
         tie_break=args.tie_break,
-        evaluate=TestPerformance(len(chunk.trials), make_env=env),
+        evaluate=make_evaluator(len(chunk.trials), env),
         seed=args.seed if first == 0 else harness.derived_seed(args.seed, first, bits=63),
         keep_reward_free=False,  # not needed later; keeps checkpoints small
         device=args.device,

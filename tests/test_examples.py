@@ -6,6 +6,7 @@ Each run must finish, and its JSON / CSV / PNG outputs must exist and hold finit
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.util
 import json
 import math
@@ -282,3 +283,38 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert last.endswith(f"stored in {tmp_path / 'checkpoints'}; continue with --resume")
     _run("gym_drop_in.py", *args, "--resume")
     assert _outputs(tmp_path, "gym_drop_in") == expected
+
+
+def test_the_long_layout_holds_every_number_once_and_reads_back(tmp_path):
+    """``_harness``: chunks concatenated along the trial axis, one CSV row per number (a number
+    of the iteration repeated per trial, J' per candidate), read back as written."""
+    from _harness import Experiment, concatenate, paired_test, write_results
+
+    def part(returns, j, seconds):
+        row = {"iteration": 1, "rewarded_transitions": 30, "test_return": returns, "j_mean": j}
+        return {"seed": 7, "seconds": seconds, "iterations": [row | {"seconds": seconds}]}
+
+    al = concatenate(
+        [part([1.5, 2.0], [[0.1, 0.2], [0.3, 0.4]], 1.0), part([3.0], [[0.5, 0.6]], 2.0)]
+    )
+    assert al["seconds"] == 3.0 and al["iterations"][0]["test_return"] == [1.5, 2.0, 3.0]
+    pl = part([1.5, 2.0, 3.0], None, 1.0)
+    results = {"fixed": {"schedule": [3], "runs": {"AL": al, "PL": pl}, "t_tests": {}}}
+    results["fixed"]["t_tests"]["test_return"] = paired_test([1.5, 2.0, 3.0], [1.5, 2.0, 3.0])
+    assert results["fixed"]["t_tests"]["test_return"]["t"] is None  # no spread: undefined
+
+    @dataclasses.dataclass
+    class Args:  # what write_results reads of the script's arguments
+        out_dir: str
+        logger: str = "none"
+
+    experiment = Experiment(name="x", schedules={"fixed": [3]}, run_chunk=print, t_tests=())
+    write_results(Args(str(tmp_path)), experiment, results, wall=0.5)
+    table = read_results(tmp_path / "x.csv")
+    assert table["fixed", "AL", 1, "test_return"] == [1.5, 2.0, 3.0]
+    assert table["fixed", "AL", 1, "rewarded_transitions"] == [30, 30, 30]
+    assert table["fixed", "AL", 1, "j_mean_k2"] == [0.2, 0.4, 0.6]
+    assert ("fixed", "PL", 1, "j_mean_k1") not in table  # PL has no J'
+    rows = (tmp_path / "x.csv").read_text().splitlines()
+    assert rows[0] == ",".join(COLUMNS) and len(rows) == 1 + 3 * (2 + 2) + 3 * 2
+    assert "seconds" not in (tmp_path / "x.csv").read_text()  # wall times: in the JSON only
