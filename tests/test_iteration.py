@@ -167,6 +167,8 @@ def test_a_selector_with_the_loops_settings_is_refused():
     psi = PsiHat(basis=_basis(), gamma=GAMMA, mode="grouped")
     with pytest.raises(ValueError, match=r"selector: \['num_steps', 'psi'\] are the loop's"):
         _api(selector=_selector(psi=psi, num_steps=N), mode=None)
+    with pytest.raises(ValueError, match=r"selector: \['generator', 'num_episodes'\] are"):
+        _api(selector=_selector(num_episodes=3, generator=torch.Generator()), mode=None)
     with pytest.raises(ValueError, match="selector must be a SamplingPolicySelector or None"):
         _api(selector="active", mode=None)
 

@@ -66,9 +66,9 @@ class SamplingPolicySelector:
 
     Standalone it needs ``env`` (or ``collector``), ``psi``, ``num_episodes`` and ``num_steps``.
     Passed to :class:`~torch_api.iteration.ActivePolicyIteration` as ``selector=`` it is given
-    the loop's settings (:meth:`bind`): leave ``psi``, ``num_steps``, ``lam``, ``fit``,
-    ``device`` and ``generator`` unset then (``env`` too, to use the loop's env), e.g.
-    ``SamplingPolicySelector(env=reward_free_env, num_repeats=5)``.
+    the loop's settings (:meth:`bind`): leave ``psi``, ``num_episodes``, ``num_steps``,
+    ``lam``, ``fit``, ``device`` and ``generator`` unset then (``env`` too, to use the loop's
+    env), e.g. ``SamplingPolicySelector(env=reward_free_env, num_repeats=5)``.
 
     Args:
         env: a TorchRL env with discrete actions used for reward-free rollouts, or a callable
@@ -154,6 +154,7 @@ class SamplingPolicySelector:
         # the settings a loop supplies (bind): None where left to it
         self._loop_settings = {
             "psi": psi,
+            "num_episodes": num_episodes,
             "num_steps": num_steps,
             "lam": lam,
             "fit": fit,
@@ -202,9 +203,9 @@ class SamplingPolicySelector:
 
         :class:`~torch_api.iteration.ActivePolicyIteration` binds the selector it is given to
         its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
-        none. The sampling streams are the loop's too (its candidates bring its reward-free
-        streams): a selector given any of these settings, or a ``generator``, is refused. M is
-        given per call (:meth:`select`'s ``num_episodes``).
+        none. M_l (the schedule's, given per call: :meth:`select`'s ``num_episodes``) and the
+        sampling streams (its candidates bring its reward-free streams) are the loop's too: a
+        selector given any of these settings, or a ``generator``, is refused.
         """
         given = sorted(k for k, v in self._loop_settings.items() if v is not None)
         if given:
