@@ -4,12 +4,12 @@ How the episodes are collected is chosen once, when a
 :class:`~torch_api.selector.SamplingPolicySelector` is built or bound
 (:func:`choose_collection`), as one of three small strategies; collecting is then one call:
 
-=========================== ================================================================
-:class:`RolloutCollection`  ``env.rollout``: one batched rollout of a :class:`PolicyStack`
-                            when the env's batch is ``T·Z·K·M`` (else candidate by candidate)
-:class:`WorkerCollection`   worker processes running TorchRL's ``MultiSyncCollector``
-:class:`CollectorCollection` the user's own ``Collector``, candidate by candidate
-=========================== ================================================================
+============================= ===============================================================
+:class:`RolloutCollection`    ``env.rollout``: one batched rollout of a :class:`PolicyStack`
+                              when the env's batch is ``T·Z·K·M`` (else candidate by candidate)
+:class:`WorkerCollection`     worker processes running TorchRL's ``MultiSyncCollector``
+:class:`CollectorCollection`  the user's own ``Collector``, candidate by candidate
+============================= ===============================================================
 
 Each strategy is called as ``collection(candidates, shape=(Z, M, N), iteration=l,
 generator=g, action_encoding=e)`` (``e``: the env's encoding where known, else None) and is
