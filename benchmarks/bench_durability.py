@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv  # noqa: E402
 from torch_api.basis import GaussianActionBasis  # noqa: E402
 from torch_api.iteration import ActivePolicyIteration  # noqa: E402
+from torch_api.selector import SamplingPolicySelector  # noqa: E402
 from torch_api.store import RunStore  # noqa: E402
 
 STEPS = 10  # N
@@ -85,7 +86,7 @@ def chain_walk_run(path: Path | None) -> float:
         schedule=(3, 2, 2),
         num_steps=STEPS,
         gamma=GAMMA,
-        num_repeats=2,
+        selector=SamplingPolicySelector(num_repeats=2),
         psi_mode="grouped",
         num_trials=3,
         seed=7,

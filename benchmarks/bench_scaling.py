@@ -30,6 +30,7 @@ from _timing import machine_info, median_time
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 from torch_api.solve import j_criterion, weighted_ridge
 
 DECREASING = (5, 5, 3, 3, 3, 1, 1)  # the chain walk's 'decreasing' schedule (section 4.2)
@@ -61,6 +62,7 @@ def chain_walk_run(trials: int) -> float:
         schedule=DECREASING,
         num_steps=10,
         gamma=GAMMA,
+        selector=SamplingPolicySelector(),
         psi_mode="grouped",
         num_trials=trials,
         keep_reward_free=False,

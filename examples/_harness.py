@@ -49,6 +49,7 @@ import scipy.stats
 
 from torch_api.dispatch import run_chunks, split_trials, trial_seeds
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 from torch_api.store import RunStore, StoreError
 
 METHODS = {"AL": "active", "PL": "passive"}
@@ -104,11 +105,13 @@ def make_iteration(
     """The chunk's run of Algorithm 1: its mode, its trials' seeds, its store; the rest of the
     loop's keyword arguments as given (``seed`` defaults to the run's seed)."""
     settings.setdefault("seed", chunk.seed)
+    selector = None  # PL: the evaluation policy samples
+    if chunk.mode == "active":  # AL: J'-chosen, reward-free env default the loop's env
+        selector = SamplingPolicySelector(
+            env=reward_free_env, num_repeats=repeats, num_workers=reward_free_workers
+        )
     return ActivePolicyIteration(
-        mode=chunk.mode,
-        num_repeats=repeats,
-        reward_free_env=reward_free_env,
-        reward_free_workers=reward_free_workers,
+        selector=selector,
         num_trials=len(chunk.trials),
         trial_seeds=trial_seeds(chunk.seed, chunk.trials),  # trial t's seed: (run seed, t) only
         checkpoint_path=chunk.store,

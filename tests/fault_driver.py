@@ -32,6 +32,7 @@ import torch
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 from torch_api.store import RunStore
 
 SCHEDULE = (3, 2, 2, 1)
@@ -54,12 +55,11 @@ def make_api(path, slice_mode, resume):
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
     return ActivePolicyIteration(
         env=lambda e: CountingChain(batch_size=e),
-        reward_free_env=lambda e: ChainWalkEnv(batch_size=e),
+        selector=SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e), num_repeats=2),
         basis=basis,
         schedule=SCHEDULE,
         num_steps=STEPS,
         gamma=GAMMA,
-        num_repeats=2,
         psi_mode="grouped",
         num_trials=TRIALS,
         seed=3,

@@ -42,7 +42,7 @@ def _api(**overrides):
         ({"epsilon_schedule": lambda l: 1.5}, r"epsilon_schedule\(1\) = 1.5 lies outside \[0, 1\]"),
         ({"epsilon_schedule": lambda l: -0.1}, r"epsilon_schedule\(1\) = -0.1 lies outside"),
         ({"initial_theta": torch.ones(11)}, r"initial_theta must have shape \[12\]"),
-        ({"mode": "greedy"}, "mode must be one of"),
+        ({"selector": "active"}, "selector must be a SamplingPolicySelector or None"),
         ({"trial_seeds": [1, 2, 3]}, "trial_seeds must hold num_trials = 2 seeds, got 3"),
         ({"num_trials": 0}, "num_trials must be >= 1, got 0"),
         ({"env": ChainWalkEnv(batch_size=4)}, "num_trials needs env as a callable"),

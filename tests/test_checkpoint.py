@@ -17,7 +17,9 @@ import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
+from torch_api.criterion import j_eq46
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 from torch_api.store import (
     CorruptRunError,
     RunExistsError,
@@ -29,7 +31,12 @@ from torch_api.store import (
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, **kw):
+def _half_j(moments, lam):
+    """A criterion other than the default (its choices are J's: it is J halved)."""
+    return j_eq46(moments, lam) / 2
+
+
+def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, repeats=2, criterion=j_eq46, **kw):
     settings = {
         "centers": torch.tensor(CENTERS)[:, None],
         "tau": TAU,
@@ -45,8 +52,9 @@ def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, **kw):
         schedule=settings["schedule"],
         num_steps=settings["num_steps"],
         gamma=settings["gamma"],
-        mode=mode,
-        num_repeats=2,
+        selector=SamplingPolicySelector(num_repeats=repeats, criterion=criterion)
+        if mode == "active"
+        else None,
         psi_mode="grouped",
         num_trials=trials,
         seed=7,
@@ -148,6 +156,8 @@ def test_an_existing_run_is_never_replaced_silently(tmp_path, full):
     [
         ({"trials": 2}, "num_trials"),
         ({"mode": "passive"}, "mode"),
+        ({"repeats": 3}, "num_repeats"),
+        ({"criterion": _half_j}, "criterion"),
         ({"centers": torch.tensor([[1.0], [4.0], [5.0], [7.0], [9.0]])}, "basis"),
         ({"tau": 2.0}, "basis"),
         ({"epsilon_schedule": lambda l: 0.1 / l}, "epsilons"),

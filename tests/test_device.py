@@ -20,6 +20,7 @@ from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.iteration import ActivePolicyIteration
 from torch_api.policies import LinearQPolicy
+from torch_api.selector import SamplingPolicySelector
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import chain_walk_api  # noqa: E402
@@ -35,13 +36,15 @@ def _chain_walk_run(device: str, mode: str) -> ActivePolicyIteration:
     """Three batched chain-walk trials with the walks, the rollouts and the algebra on device."""
     api = ActivePolicyIteration(
         env=lambda e: ChainWalkEnv(batch_size=e, seed=11, device=device),
-        reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=12, device=device),
+        selector=SamplingPolicySelector(
+            env=lambda e: ChainWalkEnv(batch_size=e, seed=12, device=device), num_repeats=3
+        )
+        if mode == "active"
+        else None,
         basis=GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2),
         schedule=(5, 3, 2),
         num_steps=10,
         gamma=GAMMA,
-        mode=mode,
-        num_repeats=3,
         psi_mode="grouped",
         num_trials=3,
         seed=5,
@@ -101,12 +104,13 @@ def test_batting_algebra_on_device_gives_the_cpu_numbers(device):
     def run(where: str) -> ActivePolicyIteration:
         api = ActivePolicyIteration(
             env=lambda e: BattingEnv(batch_size=e, seed=1),
-            reward_free_env=lambda e: BattingEnv(batch_size=e, seed=2),
+            selector=SamplingPolicySelector(
+                env=lambda e: BattingEnv(batch_size=e, seed=2), num_repeats=2
+            ),
             basis=make_basis(),
             schedule=(3, 2),
             num_steps=MAX_STEPS,
             gamma=1.0,
-            num_repeats=2,
             num_trials=2,
             seed=4,
             device=where,

@@ -13,6 +13,7 @@ from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.dispatch import run_chunks, split_trials, trial_seeds
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.selector import SamplingPolicySelector
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 
@@ -68,7 +69,7 @@ def _api(trials: list[int], seeds: list[int] | None) -> ActivePolicyIteration:
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
-        num_repeats=2,
+        selector=SamplingPolicySelector(num_repeats=2),
         num_trials=len(trials),
         seed=SEED,
         trial_seeds=seeds,

@@ -14,6 +14,7 @@ from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.design import build_design
 from torch_api.iteration import ActivePolicyIteration
+from torch_api.psi import PsiHat
 from torch_api.selector import SamplingPolicySelector
 
 LAM = 1e-3
@@ -33,17 +34,21 @@ def _basis() -> GaussianActionBasis:
     return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
 
 
+def _selector(**kwargs) -> SamplingPolicySelector:
+    return SamplingPolicySelector(
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=12), num_repeats=2, **kwargs
+    )
+
+
 def _api(*, mode="active", schedule=(3, 2), num_trials=None, seed=0, **kwargs):
     return ActivePolicyIteration(
         env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=12),
         basis=_basis(),
         schedule=schedule,
         num_steps=N,
         gamma=GAMMA,
-        mode=mode,
+        selector=_selector() if mode == "active" else kwargs.pop("selector", None),
         lam=LAM,
-        num_repeats=2,
         psi_mode="grouped",
         num_trials=num_trials,
         seed=seed,
@@ -127,12 +132,11 @@ def test_passive_mode_never_calls_the_selector(monkeypatch):
     monkeypatch.setattr(SamplingPolicySelector, "collect", refuse)
     api = ActivePolicyIteration(
         env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        reward_free_env=lambda e: refuse(),  # building a reward-free env is an error too
         basis=_basis(),
         schedule=(3, 2),
         num_steps=N,
         gamma=GAMMA,
-        mode="passive",
+        selector=None,
         psi_mode="grouped",
         num_trials=2,
     )
@@ -143,6 +147,28 @@ def test_passive_mode_never_calls_the_selector(monkeypatch):
         assert record.j_mean is None and record.j_all is None
         assert record.chosen == [0, 0]
     assert api.rewarded_transitions == 5 * N
+    assert api.mode == "passive"
+
+
+def test_the_selector_passed_in_is_bound_not_changed():
+    """The loop binds the selector it is given to its own settings (psi_hat, N, λ, fit,
+    device, streams) in a copy: the object passed keeps its own settings and serves a second
+    run exactly as the first."""
+    selector = _selector()
+    first, second = (_api(selector=selector, mode=None, num_trials=2) for _ in range(2))
+    assert first.mode == "active" and first.selector is not selector
+    assert first.selector.psi is first.psi and first.selector.num_steps == N
+    assert selector.psi is None and selector.num_steps is None and selector.generator is None
+    for a, b in zip(first.run(), second.run(), strict=True):
+        assert a.j_all == b.j_all and a.chosen == b.chosen and a.theta == b.theta
+
+
+def test_a_selector_with_the_loops_settings_is_refused():
+    psi = PsiHat(basis=_basis(), gamma=GAMMA, mode="grouped")
+    with pytest.raises(ValueError, match=r"selector: \['num_steps', 'psi'\] are the loop's"):
+        _api(selector=_selector(psi=psi, num_steps=N), mode=None)
+    with pytest.raises(ValueError, match="selector must be a SamplingPolicySelector or None"):
+        _api(selector="active", mode=None)
 
 
 def test_batched_trials_shapes_and_counts():
@@ -186,7 +212,7 @@ def test_batched_trials_equal_one_at_a_time_runs_with_the_same_seeds():
             num_steps=10,
             gamma=GAMMA,
             psi_mode="grouped",
-            num_repeats=3,
+            selector=SamplingPolicySelector(num_repeats=3),
             num_trials=len(seeds),
             trial_seeds=seeds,
         )
@@ -212,7 +238,7 @@ def test_softmax_improvement_runs_with_softmax_candidates():
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
-        num_repeats=2,
+        selector=SamplingPolicySelector(num_repeats=2),
         num_trials=2,
         improvement="softmax",
         beta=0.5,
@@ -233,7 +259,6 @@ def test_passive_run_whose_first_rewards_are_all_zero_still_explores(tie_break):
         schedule=(3, 40),
         num_steps=N,
         gamma=GAMMA,
-        mode="passive",
         psi_mode="grouped",
         num_trials=2,
         tie_break=tie_break,

@@ -95,7 +95,7 @@ def test_the_loop_logs_each_iteration_on_the_torch_api_logger(caplog):
         schedule=(2, 1),
         num_steps=5,
         gamma=0.9,
-        mode="passive",
+        selector=None,  # passive
         num_trials=1,
         seed=0,
     )

@@ -14,6 +14,7 @@ from torch_api.iteration import ActivePolicyIteration
 from torch_api.lstd import lstd_j_values, phi_rows, weighted_lstd
 from torch_api.policies import LinearQPolicy
 from torch_api.psi import PsiHat
+from torch_api.selector import SamplingPolicySelector
 
 LAM = 1e-3
 
@@ -96,12 +97,13 @@ def test_lstd_j_refuses_a_grouped_psi_hat():
 def test_active_policy_iteration_with_lstd_fits_lstd_theta():
     api = ActivePolicyIteration(
         env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        reward_free_env=lambda e: ChainWalkEnv(batch_size=e, seed=12),
+        selector=SamplingPolicySelector(
+            env=lambda e: ChainWalkEnv(batch_size=e, seed=12), num_repeats=2
+        ),
         basis=_basis(),
         schedule=(3, 2),
         num_steps=10,
         gamma=GAMMA,
-        num_repeats=2,
         psi_mode="single",
         num_trials=2,
         fit="lstd",

@@ -27,16 +27,14 @@ def chain_env(rows: int) -> ChainWalkEnv:
 def _batting_run(workers: int) -> tuple[list, torch.Tensor]:
     api = ActivePolicyIteration(
         env=batting_env,
-        reward_free_env=batting_env,
+        selector=SamplingPolicySelector(env=batting_env, num_repeats=2, num_workers=workers),
         basis=GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2),
         schedule=(2, 2),
         num_steps=10,
         gamma=1.0,
         psi_mode="single",
-        num_repeats=2,
         num_trials=3,
         seed=11,
-        reward_free_workers=workers,
     )
     history = api.run()
     return [(r.chosen, r.j_all) for r in history], api.theta

@@ -144,3 +144,28 @@ def test_trial_chunks_give_the_same_j_as_one_batch():
     assert torch.equal(one.episodes["observation"], chunked.episodes["observation"])
     torch.testing.assert_close(chunked.j_all, one.j_all, rtol=1e-12, atol=0)
     assert torch.equal(chunked.index, one.index) and chunked.j_all.shape == (5, 2, 2)
+
+
+def test_a_standalone_selector_names_what_it_lacks():
+    """Built for a loop (no env, psi or N), used alone it says what to pass; its collection
+    strategy is chosen when it is built (or bound), from env, num_workers and collector."""
+    _, psi, pi = _setup()
+    for_loop = SamplingPolicySelector(num_repeats=2)
+    with pytest.raises(ValueError, match="the selector has no env"):
+        for_loop.seed_env(4, 0)
+    with pytest.raises(ValueError, match=r"the selector needs \['psi'\]"):
+        for_loop.select(pi, [pi])
+    no_steps = SamplingPolicySelector(env=ChainWalkEnv(batch_size=2), psi=psi, num_episodes=1)
+    with pytest.raises(ValueError, match=r"the selector needs \['num_steps'\]"):
+        no_steps.select(pi, [pi])
+    bound = for_loop.bind(
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=0),
+        psi=psi,
+        num_steps=5,
+        lam=LAM,
+        fit="brm",
+        device=None,
+    )
+    assert type(bound._collection).__name__ == "RolloutCollection"
+    assert bound.collect([pi, pi.with_rule(epsilon=1.0)], num_episodes=3).shape == (2, 2, 3, 5)
+    assert for_loop.psi is None and for_loop._collection is None  # the original is unchanged

@@ -6,6 +6,8 @@ import math
 import numbers
 import warnings
 
+import torch
+
 HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
 
 
@@ -40,6 +42,24 @@ def _check_schedule(schedule) -> list[int]:
             f"got {list(schedule)}"
         )
     return [int(m) for m in schedule]
+
+
+def _check_choice(name: str, value, choices: tuple) -> None:
+    """``value`` must be one of ``choices``."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def _initial_theta(theta, width: int) -> torch.Tensor:
+    """θ_0 as float64 ``[B]`` (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67)."""
+    if theta is None:
+        return torch.ones(width, dtype=torch.float64)
+    theta = torch.as_tensor(theta, dtype=torch.float64)
+    if theta.shape != (width,):
+        raise ValueError(
+            f"initial_theta must have shape [{width}] (the basis width), got {tuple(theta.shape)}"
+        )
+    return theta
 
 
 def _count(name: str, value, minimum: int = 1) -> int:

@@ -12,11 +12,9 @@ import time
 
 import torch
 from tensordict import TensorDict
-from torchrl.envs import EnvBase
 
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import validate_episodes
-from torch_api.collect import collect_episodes, collect_with_collector
 from torch_api.streams import seed_env
 
 __all__ = ["RewardBuying"]
@@ -33,10 +31,12 @@ class RewardBuying:
         if self._action_encoding is None:  # the policies write actions in the env's encoding
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
             self.policy = self.policy.with_action_spec(self._action_encoding)
-            self.selector.action_encoding = self._action_encoding
+            if self.selector is not None:
+                self.selector.action_encoding = self._action_encoding
         seed_env(env, *self.streams.env_seeds(iteration, "rewarded_env"))
-        if self.mode == "active":
-            batch = trials * self.num_repeats * len(self._candidate_rules()) * num_episodes
+        if self.selector is not None:
+            z, k = self.selector.num_repeats, len(self._candidate_rules())
+            batch = trials * z * k * num_episodes
             self.selector.seed_env(batch, *self.streams.env_seeds(iteration, "reward_free_env"))
 
     def _buy(self) -> None:
@@ -69,11 +69,14 @@ class RewardBuying:
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
         j_mean = j_all = free = None
         reward_free_transitions = 0
-        if self.mode == "active":
-            self.selector.num_episodes = num_episodes
+        if self.selector is not None:
             earlier = self.rewarded.episodes() if len(self.rewarded) else None
             selection = self.selector.select(
-                self.policy, self._reward_free_candidates(), earlier, iteration=l_now
+                self.policy,
+                self._reward_free_candidates(),
+                earlier,
+                iteration=l_now,
+                num_episodes=num_episodes,
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
@@ -167,10 +170,3 @@ class RewardBuying:
             except ValueError:
                 return f" of trial {t}"
         return ""
-
-    def _collect(self, env: EnvBase, policy, **kwargs):
-        """Episodes from ``env.rollout`` (:func:`collect_episodes`) or the user's collector."""
-        if self.collector is None:
-            return collect_episodes(env, policy, **kwargs)
-        kwargs.pop("validate", None)  # (the collector's episodes are checked as they come)
-        return collect_with_collector(self.collector, policy, **kwargs)

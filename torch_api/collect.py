@@ -23,7 +23,13 @@ from torch_api.episodes import (
 )
 from torch_api.policy_base import ActionProbsPolicy, param_dims_of
 
-__all__ = ["EnvPerBatch", "SpecCheckedPolicy", "collect_episodes", "collect_with_collector"]
+__all__ = [
+    "EnvPerBatch",
+    "SpecCheckedPolicy",
+    "collect_episodes",
+    "collect_with_collector",
+    "rollouts_or",
+]
 
 
 class EnvPerBatch:
@@ -229,6 +235,19 @@ def collect_with_collector(
     episodes["policy_id"] = torch.full(episodes.shape, int(policy_id), dtype=torch.long)
     validate_episodes(episodes, rewarded=rewarded)
     return episodes
+
+
+def rollouts_or(collector: Callable | None) -> Callable:
+    """The source of episodes, chosen once: ``source(env, policy, **kwargs)`` is
+    :func:`collect_episodes` (``env.rollout``), or with a ``collector`` factory
+    :func:`collect_with_collector` (``env`` unused; its episodes are checked as they come)."""
+    if collector is None:
+        return collect_episodes
+
+    def from_collector(env: EnvBase, policy, *, validate: bool = True, **kwargs) -> TensorDict:
+        return collect_with_collector(collector, policy, **kwargs)
+
+    return from_collector
 
 
 class SpecCheckedPolicy:

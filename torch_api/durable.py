@@ -41,6 +41,12 @@ def _plain(value):
     return None  # not a plain setting: left out
 
 
+def _qualified(function) -> str:
+    """A function's module and name (how a setting that is a function is told apart)."""
+    name = getattr(function, "__qualname__", type(function).__qualname__)
+    return f"{getattr(function, '__module__', None)}.{name}"
+
+
 _NOT_IDENTITY = {"batch_size", "seed", "rng", "device", "training", "num_envs", "nthread"}
 
 
@@ -72,12 +78,14 @@ class DurableState:
         """
         last = len(self.schedule) + 1
         trials = math.prod(self.trial_dims)
+        selector = self.selector
         config = {
             "schedule": self.schedule,
             "num_steps": self.num_steps,
             "gamma": self.gamma,
             "mode": self.mode,
-            "num_repeats": self.num_repeats,
+            "num_repeats": None if selector is None else selector.num_repeats,
+            "criterion": None if selector is None else _qualified(selector.criterion),
             "num_trials": self.num_trials,
             "seed": self.seed,
             "trial_seeds": self.trial_seeds,
@@ -99,6 +107,23 @@ class DurableState:
             "fit": self.fit,
         }
         return config
+
+    def _open_store(self, *, resume: bool, overwrite: bool) -> None:
+        """Open the run's store at ``checkpoint_path`` (if any) and restore a stored run."""
+        self.store: RunStore | None = None
+        self.resumed = False
+        if self.checkpoint_path is None:
+            return
+        self.store = RunStore(
+            self.checkpoint_path, config=self._config(), resume=resume, overwrite=overwrite
+        )
+        if not self.store.started_fresh:
+            try:
+                self._restore(self.store.stored)
+            except BaseException:
+                self._close_store()
+                raise
+            self.resumed = True
 
     def _on_commit(self) -> None:
         """Called after every commit to the store: runs the ``on_checkpoint`` hook."""

@@ -5,6 +5,7 @@ it is made of, one concept a module:
 
 ==================================== ====================================================
 :mod:`torch_api.buying`              steps 1-2: choose the sampling policy, buy, commit
+:mod:`torch_api.fit`                 step 3: θ_l on every rewarded episode (BRM or LSTD-Q)
 :mod:`torch_api.durable`             the durable state: settings a resume checks, restore
 :mod:`torch_api.candidates`          candidate families (ε-greedy, softmax) as small objects
 :mod:`torch_api.streams`             every random stream from (seed, trial, iteration, role)
@@ -29,45 +30,30 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api._checks import HUGE_LAMBDA, _check_lambda, _check_schedule, _count
+from torch_api._checks import _check_choice, _check_lambda, _check_schedule, _count, _initial_theta
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import EpisodeBuffer, _warm_start
 from torch_api.buying import RewardBuying
 from torch_api.candidates import (
-    IMPROVEMENTS,
     PAPER_EPSILON_OFFSETS,
-    SOFTMAX_CANDIDATE_SCALES,
     CandidatePolicies,
     make_family,
     paper_epsilon,
 )
-from torch_api.collect import EnvPerBatch
-from torch_api.design import build_design
-from torch_api.durable import DurableState, fingerprint
-from torch_api.lstd import phi_rows, weighted_lstd
+from torch_api.collect import EnvPerBatch, rollouts_or
+from torch_api.durable import DurableState
+from torch_api.fit import FITS, fit_theta
 from torch_api.policies import TIE_BREAKS, LinearQPolicy
 from torch_api.psi import PSI_MODES, PsiHat
 from torch_api.records import IterationRecord
-from torch_api.selector import FITS, SamplingPolicySelector
-from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge
-from torch_api.store import RunStore
-from torch_api.streams import TrialStreams, derive_seed, slice_seed
+from torch_api.selector import SamplingPolicySelector
+from torch_api.solve import DEFAULT_LAMBDA
+from torch_api.streams import TrialStreams, derive_seed
 
-__all__ = [
-    "HUGE_LAMBDA",
-    "IMPROVEMENTS",
-    "SOFTMAX_CANDIDATE_SCALES",
-    "ActivePolicyIteration",
-    "IterationRecord",
-    "derive_seed",
-    "fingerprint",
-    "paper_epsilon",
-    "slice_seed",
-]
+__all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed"]
 
 _log = logging.getLogger(__name__)
 SLICES = ("all", "episode")
-MODES = ("active", "passive")
 
 
 class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
@@ -75,8 +61,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
 
     Algorithm 1 of Akiyama, Hachiya & Sugiyama (2010). In iteration l = 1 … L:
 
-    1. the sampling policy is the J'-chosen candidate (``mode="active"``, Algorithm 2, through
-       :class:`~torch_api.selector.SamplingPolicySelector`) or pi_l itself (``"passive"``);
+    1. the sampling policy is the J'-chosen candidate (active learning: Algorithm 2, by the
+       ``selector`` given) or pi_l itself (passive: ``selector=None``);
     2. ``schedule[l-1]`` rewarded episodes of N steps are bought with it and stored;
     3. θ_l is fitted on ALL rewarded episodes so far (sample reuse, eq. 56), psi_hat on that
        union with pi_l and importance weights towards pi_l;
@@ -95,18 +81,24 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         schedule: episodes bought per iteration ``(M_1, …, M_L)``, each ≥ 1.
         num_steps: N, steps per episode.
         gamma: discount γ in (0, 1].
-        mode: ``"active"`` or ``"passive"``.
+        selector: the :class:`~torch_api.selector.SamplingPolicySelector` choosing each
+            iteration's sampling policy (active learning), or None (passive: pi_l samples).
+            It brings what is its own (its reward-free env or collector, Z = ``num_repeats``,
+            worker processes, criterion); the loop binds it to its psi_hat, N, λ, fit and
+            device (:meth:`~torch_api.selector.SamplingPolicySelector.bind`; the object passed
+            is left as it is) and to ``env`` where it has none, and gives it candidates that
+            draw from the loop's reward-free streams. E.g.
+            ``selector=SamplingPolicySelector(env=lambda rows: make_env(rows), num_repeats=5)``
+            (an env whose batch is ``T·Z·K·M_l`` rolls out once).
         lam: λ > 0.
-        num_repeats: Z for J'.
-        reward_free_env: environment for the selector's reward-free rollouts, or a callable
-            ``batch_size -> env`` (give one whose batch is ``Z·K·M_l`` for speed). Default: env.
         psi_mode: ``"grouped"`` (finite states), ``"single"`` (the paper's continuous choice)
             or ``"knn"``; ``knn_k`` its k.
         initial_theta: θ_0 of pi_1 (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67).
         epsilon_schedule: ε of pi_l as a function of l (default ``0.15 / l``).
         candidate_offsets: candidates ε_l + offset (eq. 59).
         improvement: ``"epsilon_greedy"`` (the paper) or ``"softmax"`` (eq. 7; pi_l uses
-            ``beta`` and the candidates β times ``SOFTMAX_CANDIDATE_SCALES``).
+            ``beta`` and the candidates β times
+            :data:`~torch_api.candidates.SOFTMAX_CANDIDATE_SCALES`).
         beta: softmax temperature.
         tie_break: how the ε-greedy policies share the greedy mass among actions whose Q̂ ties
             for the maximum: ``"uniform"`` (equal parts: pi_1 of θ_0 = 1, and any pi_l of
@@ -118,12 +110,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
             per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
-        seed: seed of the run. Each iteration derives the policies' sampling streams (fresh
-            for each use) and seeds the envs (``env.set_seed``) from ``(seed, l)``; runs with
-            the same seed in active and passive mode share the rewarded environments' streams
-            and the sampling streams of the rewarded episodes (a paired design): the reward-free
-            rollouts of the active mode draw their actions from streams of their own
-            (``"reward_free_policy"``), so the pair differs only by the sampling policy.
+        seed: seed of the run: the policies' sampling streams (fresh for each use) and the
+            envs' seeds (``env.set_seed``) of iteration l are derived from ``(seed, l, role)``
+            (:class:`~torch_api.streams.TrialStreams`). Active and passive runs of one seed share
+            the rewarded episodes' streams (the reward-free rollouts draw from streams of their
+            own): a pair differs only by the sampling policy.
         trial_seeds: with ``num_trials``, one seed per trial (default: derived from ``seed``).
             Each trial then draws from streams of its own, seeded from ``(trial_seed, l)``: the
             policies' sampling and, for environments with ``set_block_seeds`` (this project's
@@ -137,7 +128,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             against other writers and checked writable here, before anything is bought.
         resume: continue the run stored at ``checkpoint_path`` (built with the same settings:
             everything that gives the stored data its meaning must match, while ``lam``,
-            ``device``, ``reward_free_workers`` and ``evaluate`` may change). Only missing
+            ``device``, the selector's workers and ``evaluate`` may change). Only missing
             rewarded episodes are bought, with the uninterrupted run's random streams. A
             missing run starts fresh (``resumed`` is then False).
         overwrite: discard a run stored at ``checkpoint_path``. Without ``resume`` or
@@ -149,10 +140,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         device: where psi_hat, J and the solves run (e.g. ``"cuda"``). The rollouts stay on
             the environments' device (the policies' θ follows the observations) and the
             episode buffers are held on the CPU. Default: CPU.
-        reward_free_workers: if > 0, the reward-free episodes are collected in this many worker
-            processes by TorchRL's ``MultiSyncCollector``
-            (:func:`~torch_api.multiprocess.collect_episodes_in_workers`); ``reward_free_env``
-            must then be a picklable callable ``batch_size -> env``.
         fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
             ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
             learner; needs ``psi_mode="single"``).
@@ -166,11 +153,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
             (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
             ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
-            ``StepCounter(max_steps=N)``): the rewarded and the reward-free episodes are then
-            read from it (:func:`~torch_api.data.collect_with_collector`) instead of from
-            ``env.rollout`` (the default; faster on batched envs). The collector's env is then
-            seeded by the user, not by ``seed``; ``env`` still names the env (its action
-            encoding). Not with ``num_trials``.
+            ``StepCounter(max_steps=N)``): the rewarded episodes are then read from it
+            (:func:`~torch_api.data.collect_with_collector`) instead of from ``env.rollout``
+            (the default; faster on batched envs); give the selector one too for the
+            reward-free ones. The collector's env is then seeded by the user, not by ``seed``;
+            ``env`` still names the env (its action encoding). Not with ``num_trials``.
         on_checkpoint: optional hook ``(api) -> None`` called after every commit to the store
             (progress, a testing aid that stops the process at a given commit).
         on_iteration: optional hook ``(record) -> None`` called with each completed
@@ -181,10 +168,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         >>> from torch_api.basis import GaussianActionBasis
         >>> basis = GaussianActionBasis(centers=torch.zeros(1, 4), tau=1.0, num_actions=2)
         >>> api = ActivePolicyIteration(env=GymEnv("CartPole-v1"), basis=basis, schedule=(2, 1),
-        ...                             num_steps=5, gamma=0.9)
+        ...                             num_steps=5, gamma=0.9,
+        ...                             selector=SamplingPolicySelector(num_repeats=2))
         >>> history = api.run()
-        >>> len(history), api.rewarded_transitions <= 3 * 5
-        (2, True)
+        >>> len(history), api.mode, api.rewarded_transitions <= 3 * 5
+        (2, 'active', True)
     """
 
     def __init__(
@@ -195,10 +183,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         schedule: Sequence[int],
         num_steps: int,
         gamma: float,
-        mode: str = "active",
+        selector: SamplingPolicySelector | None = None,
         lam: float = DEFAULT_LAMBDA,
-        num_repeats: int = 5,
-        reward_free_env: EnvBase | Callable[[int], EnvBase] | None = None,
         psi_mode: str = "single",
         knn_k: int = 5,
         initial_theta: torch.Tensor | None = None,
@@ -214,7 +200,6 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         keep_reward_free: bool = True,
         checkpoint_path: str | os.PathLike | None = None,
         device: torch.device | str | None = None,
-        reward_free_workers: int = 0,
         resume: bool = False,
         overwrite: bool = False,
         rewarded_slice: str = "all",
@@ -224,35 +209,37 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         on_checkpoint: Callable[[ActivePolicyIteration], None] | None = None,
         on_iteration: Callable[[IterationRecord], None] | None = None,
     ) -> None:
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if improvement not in IMPROVEMENTS:
-            raise ValueError(f"improvement must be one of {IMPROVEMENTS}, got {improvement!r}")
-        if tie_break not in TIE_BREAKS:
-            raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {tie_break!r}")
-        if improvement == "softmax" and not (beta is not None and beta > 0):
-            raise ValueError(f"improvement='softmax' needs beta > 0, got beta={beta}")
+        if selector is not None and not isinstance(selector, SamplingPolicySelector):
+            raise ValueError(
+                "selector must be a SamplingPolicySelector or None (passive), got "
+                f"{type(selector).__name__}"
+            )
+        # the candidate family checks improvement, beta and the offsets
+        family = make_family(
+            improvement,
+            epsilon_schedule=epsilon_schedule,
+            candidate_offsets=candidate_offsets,
+            beta=beta,
+        )
+        _check_choice("tie_break", tie_break, TIE_BREAKS)
         schedule = _check_schedule(schedule)
         num_steps = _count("num_steps", num_steps)
-        num_repeats = _count("num_repeats", num_repeats)
         knn_k = _count("knn_k", knn_k)
-        reward_free_workers = _count("reward_free_workers", reward_free_workers, 0)
         if num_trials is not None:
             num_trials = _count("num_trials", num_trials)
         if not 0 < gamma <= 1:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         _check_lambda(lam)
-        if rewarded_slice not in SLICES:
-            raise ValueError(f"rewarded_slice must be one of {SLICES}, got {rewarded_slice!r}")
+        _check_choice("rewarded_slice", rewarded_slice, SLICES)
         if (resume or overwrite) and checkpoint_path is None:
             raise ValueError("resume and overwrite need a checkpoint_path")
-        if psi_mode not in PSI_MODES:
-            raise ValueError(f"psi_mode must be one of {PSI_MODES}, got {psi_mode!r}")
-        if not candidate_offsets:
-            raise ValueError("candidate_offsets must not be empty")
-        if collector is not None and (num_trials is not None or reward_free_workers):
-            raise ValueError("collector works without num_trials and reward_free_workers")
-        self.collector = collector
+        _check_choice("psi_mode", psi_mode, PSI_MODES)
+        _check_choice("fit", fit, FITS)
+        if fit == "lstd" and psi_mode != "single":
+            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
+        if num_trials is not None and (collector or getattr(selector, "collector", None)):
+            raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+        self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
         self.on_checkpoint = on_checkpoint
         self.on_iteration = on_iteration
         if num_trials is not None and isinstance(env, EnvBase):
@@ -265,42 +252,23 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.schedule = schedule
         self.num_steps = int(num_steps)
         self.gamma = float(gamma)
-        self.mode = mode
         self.lam = float(lam)
-        self.num_repeats = int(num_repeats)
         self.epsilon_schedule = epsilon_schedule
         self.candidate_offsets = tuple(candidate_offsets)
         self.improvement = improvement
         self.beta = beta
         self.tie_break = tie_break
-        if fit not in FITS:
-            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
-        if fit == "lstd" and psi_mode != "single":
-            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
         self.fit = fit
         self.evaluate = evaluate
         self.seed = int(seed)
         self.streams = TrialStreams.for_trials(self.seed, num_trials, trial_seeds)
         self.trial_seeds = self.streams.trial_seeds
-        self.family = make_family(
-            improvement,
-            epsilon_schedule=epsilon_schedule,
-            candidate_offsets=self.candidate_offsets,
-            beta=beta,
-        )
+        self.family = family
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.device = torch.device("cpu") if device is None else torch.device(device)
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
-        theta = torch.ones(basis.num_features, dtype=torch.float64)
-        if initial_theta is not None:
-            theta = torch.as_tensor(initial_theta, dtype=torch.float64)
-            if theta.shape != (basis.num_features,):
-                raise ValueError(
-                    f"initial_theta must have shape [{basis.num_features}] (the basis width), "
-                    f"got {tuple(theta.shape)}"
-                )
-        self._initial_theta = theta
+        self._initial_theta = theta = _initial_theta(initial_theta, basis.num_features)
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()
         self.rewarded_slice = rewarded_slice
         self.iteration = 0  # iterations completed
@@ -314,40 +282,32 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self._action_encoding = None  # the env's action encoding, read from its first instance
         if isinstance(env, EnvBase):
             self._action_encoding = ActionEncoding.from_spec(env.action_spec, env.batch_size)
+        self.selector = None
+        if selector is not None:
+            self.selector = selector.bind(
+                env=self._env_for,
+                psi=self.psi,
+                num_steps=self.num_steps,
+                lam=self.lam,
+                fit=fit,
+                device=self.device,
+            )
+        repeats = 0 if selector is None else selector.num_repeats
         self.reward_free = EpisodeBuffer(
-            rewarded=False, capacity=self.num_repeats * self.family.num_candidates * sum(schedule)
+            rewarded=False, capacity=max(1, repeats * self.family.num_candidates * sum(schedule))
         )
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
         self._pending: dict | None = None  # an iteration whose rewards are bought, θ not yet fit
         self._selection: dict | None = None  # the coming iteration's chosen sampling policy
         self._partial: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
-        self.selector = SamplingPolicySelector(
-            env=reward_free_env if reward_free_env is not None else self._env_for,
-            psi=self.psi,
-            num_episodes=1,  # set per iteration (M_l)
-            num_steps=self.num_steps,
-            num_repeats=self.num_repeats,
-            lam=self.lam,
-            device=self.device,
-            num_workers=reward_free_workers,
-            fit=fit,
-            collector=collector,
-        )
         self.policy = self._policy(self.theta, 1)
-        self.store: RunStore | None = None
-        self.resumed = False
-        if checkpoint_path is not None:
-            self.store = RunStore(
-                self.checkpoint_path, config=self._config(), resume=resume, overwrite=overwrite
-            )
-            if not self.store.started_fresh:
-                try:
-                    self._restore(self.store.stored)
-                except BaseException:
-                    self._close_store()
-                    raise
-                self.resumed = True
+        self._open_store(resume=resume, overwrite=overwrite)
+
+    @property
+    def mode(self) -> str:
+        """``"active"`` with a selector, ``"passive"`` without."""
+        return "passive" if self.selector is None else "active"
 
     @property
     def rewarded_transitions(self) -> int:
@@ -367,16 +327,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         l_now = self.iteration + 1
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
-        design = build_design(episodes, self.policy.to_device(self.device), self.psi)
-        if self.fit == "lstd":
-            phi = phi_rows(episodes, self.basis)
-            self.theta = weighted_lstd(
-                phi, design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-            ).cpu()
-        else:
-            self.theta = weighted_ridge(
-                design.x, design.w, design.reward, self.lam, num_samples=design.num_samples
-            ).cpu()
+        policy = self.policy.to_device(self.device)
+        self.theta = fit_theta(self.fit, episodes, policy, self.psi, self.basis, self.lam).cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -422,7 +374,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         object keeps its state: envs are built again if it goes on, a store is not."""
         self._close_store()
         self._env_for.close()
-        self.selector.close()
+        if self.selector is not None:
+            self.selector.close()
 
     def __enter__(self) -> ActivePolicyIteration:
         return self

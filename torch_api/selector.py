@@ -1,9 +1,13 @@
-"""Sampling-policy selection by the reward-free J criterion (paper section 3.4, Algorithm 2)."""
+"""Sampling-policy selection by the reward-free J criterion (paper section 3.4, Algorithm 2).
+
+How the reward-free episodes are collected (one batched rollout, worker processes, the user's
+``Collector``) is chosen once, when the selector is built or bound:
+:mod:`torch_api.candidate_collection`.
+"""
 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -11,19 +15,14 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from torch_api.candidate_collection import PolicyStack, choose_collection
 from torch_api.candidates import PAPER_EPSILON_OFFSETS, candidate_epsilons
+from torch_api.collect import EnvPerBatch
 from torch_api.criterion import Criterion, j_eq46, j_values
-from torch_api.data import (
-    EnvPerBatch,
-    as_episodes,
-    collect_episodes,
-    collect_with_collector,
-    joinable,
-    seed_env,
-)
+from torch_api.episodes import as_episodes
+from torch_api.fit import FITS
 from torch_api.lstd import lstd_j_values
-from torch_api.multiprocess import collect_episodes_in_workers
-from torch_api.policy_base import ActionProbsPolicy, param_dims_of
+from torch_api.policy_base import param_dims_of
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA
 
@@ -35,48 +34,6 @@ __all__ = [
     "candidate_epsilons",
     "j_values",
 ]
-
-FITS = ("brm", "lstd")  # the paper's least-squares fit on psi_hat, or LSTD-Q (torch_api.lstd)
-
-
-class PolicyStack(ActionProbsPolicy):
-    """K policies side by side over one batched environment, rows laid out as ``[..., K, M]``.
-
-    Row ``e`` of an environment batch of size ``R·K·M`` follows ``policies[(e // M) % K]``.
-    Used to collect every candidate's reward-free episodes in a single batched rollout.
-
-    Args:
-        policies: K policies with ``action_probs``.
-        episodes_per_policy: M, consecutive rows per policy.
-        generator: random stream for sampling (or ``streams=``: one generator per block of
-            rows, e.g. per trial; see :func:`~torch_api.policy_base.sample_actions`).
-    """
-
-    def __init__(self, policies: Sequence, *, episodes_per_policy: int, generator=None, **io):
-        if not policies:
-            raise ValueError("policies must not be empty")
-        super().__init__(num_actions=policies[0].num_actions, generator=generator, **io)
-        self.policies = list(policies)
-        self.episodes_per_policy = int(episodes_per_policy)
-
-    def action_probs(self, obs: torch.Tensor) -> torch.Tensor:
-        rows = obs.shape[0]
-        block = len(self.policies) * self.episodes_per_policy
-        if rows % block:
-            raise ValueError(f"a batch of {rows} rows is not a multiple of K·M = {block}")
-        grid = obs.reshape(
-            rows // block, len(self.policies), self.episodes_per_policy, *obs.shape[1:]
-        )
-        probs = [p.action_probs(grid[:, k]) for k, p in enumerate(self.policies)]
-        return torch.stack(probs, 1).reshape(rows, *probs[0].shape[2:])
-
-    def trial_slice(self, trials: slice) -> PolicyStack:
-        """The stack of some trials only (each policy sliced; the per-trial streams too)."""
-        return PolicyStack(
-            [p.trial_slice(trials) for p in self.policies],
-            episodes_per_policy=self.episodes_per_policy,
-            **self._io_kwargs(trials),
-        )
 
 
 @dataclass
@@ -107,15 +64,21 @@ class SamplingPolicySelector:
     J for all candidates and repeats in one batched call (:func:`j_values`) and returns the
     candidate with the smallest mean J'. No reward is read: the collected episodes drop it.
 
+    Standalone it needs ``env`` (or ``collector``), ``psi``, ``num_episodes`` and ``num_steps``.
+    Passed to :class:`~torch_api.iteration.ActivePolicyIteration` as ``selector=`` it is given
+    the loop's settings (:meth:`bind`): leave ``psi``, ``num_steps``, ``lam``, ``fit``,
+    ``device`` and ``generator`` unset then (``env`` too, to use the loop's env), e.g.
+    ``SamplingPolicySelector(env=reward_free_env, num_repeats=5)``.
+
     Args:
         env: a TorchRL env with discrete actions used for reward-free rollouts, or a callable
             ``batch_size -> env``. An env whose batch size is ``Z·K·M`` is rolled out once;
             any other is rolled out candidate by candidate.
         psi: the psi_hat module (basis, γ, grouping).
-        num_episodes: M, reward-free episodes per candidate and repeat.
+        num_episodes: M, reward-free episodes per candidate and repeat (or per call).
         num_steps: N.
         num_repeats: Z (J' is the mean of Z values of J).
-        lam: λ.
+        lam: λ (default :data:`~torch_api.solve.DEFAULT_LAMBDA`).
         generator: random stream of the sampling (default: the candidates' own).
         device: where psi_hat and J are computed (default: where the episodes are); rollouts
             stay on the environment's device.
@@ -127,7 +90,7 @@ class SamplingPolicySelector:
             (:func:`~torch_api.multiprocess.collect_episodes_in_workers`; for slow
             environments); ``env`` must then be a picklable callable ``batch_size -> env``,
             seeded through :meth:`seed_env`.
-        fit: the learner whose error J estimates: ``"brm"`` (the paper's least-squares fit on
+        fit: the learner whose error J estimates: ``"brm"`` (default; the paper's fit on
             psi_hat, :func:`j_values`) or ``"lstd"`` (LSTD-Q, beyond the paper,
             :func:`~torch_api.lstd.lstd_j_values`).
         criterion: with ``fit="brm"``, the criterion of the candidates' pooled moments
@@ -159,17 +122,17 @@ class SamplingPolicySelector:
     def __init__(
         self,
         *,
-        env: EnvBase | Callable[[int], EnvBase],
-        psi: PsiHat,
-        num_episodes: int,
-        num_steps: int,
+        env: EnvBase | Callable[[int], EnvBase] | None = None,
+        psi: PsiHat | None = None,
+        num_episodes: int | None = None,
+        num_steps: int | None = None,
         num_repeats: int = 5,
-        lam: float = DEFAULT_LAMBDA,
+        lam: float | None = None,
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
         max_design_bytes: int = 2**29,
         num_workers: int = 0,
-        fit: str = "brm",
+        fit: str | None = None,
         collector: Callable | None = None,
         criterion: Criterion = j_eq46,
     ) -> None:
@@ -178,168 +141,135 @@ class SamplingPolicySelector:
             ("num_steps", num_steps),
             ("num_repeats", num_repeats),
         ):
-            if value < 1:
+            if value is not None and value < 1:
                 raise ValueError(f"{name} must be >= 1, got {value}")
-        if not lam > 0:
+        if lam is not None and not lam > 0:
             raise ValueError(f"lam must be > 0, got {lam}")
-        self._envs = EnvPerBatch(env)
+        if num_workers < 0:
+            raise ValueError(f"num_workers must be >= 0, got {num_workers}")
+        if fit is not None and fit not in FITS:
+            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+        if fit == "lstd" and criterion is not j_eq46:
+            raise ValueError("criterion applies to fit='brm' (LSTD-Q has its own J)")
+        # the settings a loop supplies (bind): None where left to it
+        self._loop_settings = {
+            "psi": psi,
+            "num_steps": num_steps,
+            "lam": lam,
+            "fit": fit,
+            "device": device,
+            "generator": generator,
+        }
+        self.env = env
         self.psi = psi
-        self.num_episodes = int(num_episodes)
-        self.num_steps = int(num_steps)
+        self.num_episodes = None if num_episodes is None else int(num_episodes)
+        self.num_steps = None if num_steps is None else int(num_steps)
         self.num_repeats = int(num_repeats)
-        self.lam = float(lam)
+        self.lam = DEFAULT_LAMBDA if lam is None else float(lam)
         self.generator = generator
         self.device = None if device is None else torch.device(device)
         self.max_design_bytes = int(max_design_bytes)
-        if num_workers < 0:
-            raise ValueError(f"num_workers must be >= 0, got {num_workers}")
-        if num_workers and not self._envs.is_factory:
-            raise ValueError("num_workers needs env as a picklable callable batch_size -> env")
         self.num_workers = int(num_workers)
-        if fit not in FITS:
-            raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
-        self.fit = fit
-        if fit == "lstd" and criterion is not j_eq46:
-            raise ValueError("criterion applies to fit='brm' (LSTD-Q has its own J)")
+        self.fit = "brm" if fit is None else fit
         self.criterion = criterion
         # the J of the learner, chosen once: LSTD-Q's, or the criterion of the pooled moments
         self._j = (
-            lstd_j_values if fit == "lstd" else functools.partial(j_values, criterion=criterion)
+            lstd_j_values
+            if self.fit == "lstd"
+            else functools.partial(j_values, criterion=criterion)
         )
-        if collector is not None and num_workers:
-            raise ValueError("give either collector or num_workers, not both")
         self.collector = collector
         self.action_encoding = None  # the env's action encoding, where known (else probed)
-        self._worker_env_seeds: tuple[int, list[int] | None] = (0, None)
+        # how the episodes are collected, chosen once (env.rollout, workers or the collector)
+        self._collection = None
+        if env is not None or collector is not None:
+            envs = None if env is None else EnvPerBatch(env)
+            self._collection = choose_collection(
+                envs, num_workers=self.num_workers, collector=collector
+            )
+
+    def bind(
+        self,
+        *,
+        env: EnvBase | Callable[[int], EnvBase],
+        psi: PsiHat,
+        num_steps: int,
+        lam: float,
+        fit: str,
+        device: torch.device | str | None,
+    ) -> SamplingPolicySelector:
+        """This selector with a loop's settings: a new selector, this one left as it is.
+
+        :class:`~torch_api.iteration.ActivePolicyIteration` binds the selector it is given to
+        its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
+        none. The sampling streams are the loop's too (its candidates bring its reward-free
+        streams): a selector given any of these settings, or a ``generator``, is refused. M is
+        given per call (:meth:`select`'s ``num_episodes``).
+        """
+        given = sorted(k for k, v in self._loop_settings.items() if v is not None)
+        if given:
+            raise ValueError(
+                f"selector: {given} are the loop's settings (ActivePolicyIteration supplies "
+                "them); leave them unset on the selector you pass it"
+            )
+        return SamplingPolicySelector(
+            env=self.env if self.env is not None else env,
+            psi=psi,
+            num_steps=num_steps,
+            num_repeats=self.num_repeats,
+            lam=lam,
+            device=device,
+            max_design_bytes=self.max_design_bytes,
+            num_workers=self.num_workers,
+            fit=fit,
+            collector=self.collector,
+            criterion=self.criterion,
+        )
 
     def close(self) -> None:
         """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""
-        self._envs.close()
+        if self._collection is not None:
+            self._collection.close()
 
-    def env_for(self, batch: int) -> EnvBase:
-        """The reward-free environment for a batch of ``batch`` rows (built once per size)."""
-        return self._envs(batch)
+    def _chosen_collection(self):
+        if self._collection is None:
+            raise ValueError(
+                "the selector has no env: pass env= (or collector=), or pass the selector to "
+                "ActivePolicyIteration(selector=...), which gives it its env"
+            )
+        return self._collection
 
     def seed_env(self, batch: int, seed: int, block_seeds: Sequence[int] | None = None) -> None:
         """Seed the reward-free environment of ``batch`` rows (with ``num_workers``: the
         workers' environments of the next :meth:`collect`), as :func:`torch_api.data.seed_env`."""
-        if self.num_workers:
-            self._worker_env_seeds = (seed, None if block_seeds is None else list(block_seeds))
-        else:
-            seed_env(self.env_for(batch), seed, block_seeds)
+        self._chosen_collection().seed(batch, seed, block_seeds)
 
-    def collect(self, candidates: Sequence, iteration: int = 0) -> TensorDictBase:
+    def collect(
+        self, candidates: Sequence, iteration: int = 0, num_episodes: int | None = None
+    ) -> TensorDictBase:
         """Reward-free episodes of every candidate and repeat, ``[*T, Z, K, M, N]``.
 
         ``*T`` are the candidates' trial dims (``param_dims``): rows of the environment batch
-        are laid out ``(t, z, k, m)``.
+        are laid out ``(t, z, k, m)``. ``num_episodes`` is M (default: the selector's).
         """
-        if self.collector is not None or not all(
-            isinstance(c, ActionProbsPolicy) for c in candidates
-        ):
-            return self._collect_each(candidates, iteration)
-        trial_dims = param_dims_of(candidates[0])
-        trials = math.prod(trial_dims)
-        z, k, m, n = self.num_repeats, len(candidates), self.num_episodes, self.num_steps
-        blocks = candidates[0].block_generators  # one stream per trial, else one for all
-        streams = blocks if blocks is not None else self.generator or candidates[0].generator
-        ids = torch.arange(k).reshape(k, 1, 1)
-        if self.num_workers:
-            stack = PolicyStack(candidates, episodes_per_policy=m, streams=streams)
-            seed, block_seeds = self._worker_env_seeds
-            episodes = collect_episodes_in_workers(
-                self._envs.env,
-                stack,
-                action_spec=self.action_encoding,
-                num_episodes=trials * z * k * m,
-                num_steps=n,
-                rewarded=False,
-                num_workers=self.num_workers,
-                blocks=trials,
-                env_seed=seed,
-                env_block_seeds=block_seeds,
-                iteration=iteration,
-            )
-            episodes = episodes.reshape(*trial_dims, z, k, m, n)
-            episodes["policy_id"] = ids.expand(episodes.shape).clone()
-            return episodes
-        env = self.env_for(trials * z * k * m)
-        if len(env.batch_size) == 1 and env.batch_size[0] == trials * z * k * m:
-            stack = PolicyStack(candidates, episodes_per_policy=m, streams=streams)
-            episodes = collect_episodes(
-                env,
-                stack,
-                num_episodes=trials * z * k * m,
-                num_steps=n,
-                rewarded=False,
-                iteration=iteration,
-            )
-            episodes = episodes.reshape(*trial_dims, z, k, m, n)
-            episodes["policy_id"] = ids.expand(episodes.shape).clone()
-            return episodes
-        if trial_dims:
-            raise ValueError(
-                f"candidates with per-trial parameters {trial_dims} need a reward-free env of "
-                f"batch size T·Z·K·M = {trials * z * k * m} (pass a callable batch_size -> env)"
-            )
-        repeats = [
-            torch.stack(
-                [
-                    collect_episodes(
-                        env,
-                        cand,
-                        num_episodes=m,
-                        num_steps=n,
-                        rewarded=False,
-                        iteration=iteration,
-                        policy_id=i,
-                    )
-                    for i, cand in enumerate(candidates)
-                ]
-            )
-            for _ in range(z)
-        ]
-        return torch.stack(repeats)
+        m = self.num_episodes if num_episodes is None else int(num_episodes)
+        self._need(num_episodes=m, num_steps=self.num_steps)
+        return self._chosen_collection()(
+            candidates,
+            shape=(self.num_repeats, m, self.num_steps),
+            iteration=iteration,
+            generator=self.generator,
+            action_encoding=self.action_encoding,
+        )
 
-    def _collect_each(self, candidates: Sequence, iteration: int) -> TensorDictBase:
-        """``[Z, K, M, N]`` episodes collected candidate by candidate (Z·M rows each): the way
-        for candidates that are not the library's policies (e.g. a TorchRL
-        ``ProbabilisticActor``), which cannot share one batched rollout."""
-        z, m, n = self.num_repeats, self.num_episodes, self.num_steps
-        if self.num_workers:
+    @staticmethod
+    def _need(**settings) -> None:
+        missing = [name for name, value in settings.items() if value is None]
+        if missing:
             raise ValueError(
-                "num_workers needs every candidate to be a torch_api policy; got "
-                f"{[type(c).__name__ for c in candidates]}"
+                f"the selector needs {missing}: pass them, or pass the selector to "
+                "ActivePolicyIteration(selector=...), which supplies them"
             )
-        for cand in candidates:
-            if param_dims_of(cand):
-                raise ValueError(
-                    "candidates with per-trial parameters cannot be mixed with other policies"
-                )
-        parts = []
-        for i, cand in enumerate(candidates):
-            if self.collector is not None:
-                episodes = collect_with_collector(
-                    self.collector,
-                    cand,
-                    num_episodes=z * m,
-                    num_steps=n,
-                    rewarded=False,
-                    iteration=iteration,
-                    policy_id=i,
-                )
-            else:
-                episodes = collect_episodes(
-                    self.env_for(z * m),
-                    cand,
-                    num_episodes=z * m,
-                    num_steps=n,
-                    rewarded=False,
-                    iteration=iteration,
-                    policy_id=i,
-                )
-            parts.append(episodes.reshape(z, m, n))
-        return torch.stack(joinable(parts), 1)
 
     def _trial_chunks(self, episodes: TensorDictBase, earlier: TensorDictBase | None) -> list:
         """Slices of the trial dim such that each chunk's design stays under the byte budget."""
@@ -365,6 +295,7 @@ class SamplingPolicySelector:
         candidates: Sequence,
         earlier_episodes: TensorDictBase | None = None,
         iteration: int = 0,
+        num_episodes: int | None = None,
     ) -> Selection:
         """Run Algorithm 2 and return the chosen candidate with every J value.
 
@@ -379,12 +310,14 @@ class SamplingPolicySelector:
                 read), in the library's format or as TorchRL produces them (a ``Collector``'s
                 batch; :func:`~torch_api.data.as_episodes`).
             iteration: tag stored with the collected episodes.
+            num_episodes: M of this call (default: the selector's ``num_episodes``).
         """
         if not candidates:
             raise ValueError("candidates must not be empty")
+        self._need(psi=self.psi)
         if earlier_episodes is not None:
             earlier_episodes = as_episodes(earlier_episodes, rewarded=False)
-        episodes = self.collect(candidates, iteration)
+        episodes = self.collect(candidates, iteration, num_episodes)
         j_all = (
             torch.cat(
                 [
