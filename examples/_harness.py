@@ -40,7 +40,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -182,8 +182,6 @@ class Experiment:
     """a run's store name, with ``{schedule}``, ``{method}`` (AL, PL) and ``{mode}``"""
     curves: tuple[str, ...] = ()
     """the measures written by ``--logger`` (means over trials per iteration)"""
-    extra: dict = field(default_factory=dict)
-    """more entries of the JSON"""
 
 
 def store_path(out: Path, experiment: Experiment, schedule: str, method: str, c: int, n: int):
@@ -357,9 +355,10 @@ def read_results(path: str | os.PathLike) -> dict[tuple, list]:
     return table
 
 
-def write_results(args, experiment: Experiment, results: dict, wall: float) -> dict:
+def write_results(args, experiment: Experiment, results: dict, wall: float, **extra) -> dict:
     """``<name>.csv`` (:func:`long_rows`) and ``<name>.json`` (arguments, wall time, t-tests,
-    the runs' settings and totals) in ``--out-dir``; the learning curves with ``--logger``.
+    the runs' settings and totals; ``extra``: more entries) in ``--out-dir``; the learning
+    curves with ``--logger``.
 
     Returns the JSON's payload, with ``results`` (every number, in memory) added.
     """
@@ -379,7 +378,7 @@ def write_results(args, experiment: Experiment, results: dict, wall: float) -> d
         }
         for name, entry in results.items()
     }
-    payload = {"args": asdict(args), "wall_seconds": wall, **experiment.extra}
+    payload = {"args": asdict(args), "wall_seconds": wall, **extra}
     (out / f"{experiment.name}.json").write_text(json.dumps({**payload, "summary": summary}))
     log_curves(args.logger, out, experiment, results)
     return {**payload, "summary": summary, "results": results}

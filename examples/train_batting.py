@@ -327,12 +327,13 @@ def main(argv=None, on_checkpoint=None) -> dict:
             audit.merge(physics)
     for name, entry in results.items():
         print_table(name, entry, args.trials)
-    experiment.extra = {"test_episodes": TEST_EPISODES, "physics_steps": dict(audit.steps)}
-    payload = harness.write_results(args, experiment, results, wall)
+    steps = dict(audit.steps)
+    payload = harness.write_results(
+        args, experiment, results, wall, test_episodes=TEST_EPISODES, physics_steps=steps
+    )
     payload["physics_audit"] = audit  # for benchmarks/bench_figure10.py; not in the JSON
     out = Path(args.out_dir)
     figure10(results, REFERENCE_OPTIMUM, PAPER_BASIS_CEILING, out / "fig10_performance.png")
-    steps = audit.steps
     print(f"\nphysics: {steps['coarse']:,} coarse + {steps['fine']:,} fine MuJoCo steps")
     print(f"wall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")
     print_findings(results, args)
