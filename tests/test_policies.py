@@ -205,3 +205,37 @@ def test_streams_are_fixed_when_a_policy_is_made():
     first = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
     again = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
     assert torch.equal(first["action"], again["action"])
+
+
+@pytest.mark.parametrize(
+    "spec",
+    ["one-hot", "categorical [..., 1]", "index"],
+)
+def test_log_prob_of_the_actions_a_rollout_wrote(spec):
+    """log pi(a|s) of the actions as the env holds them (GymEnv's one-hot int64, a Categorical
+    spec with a trailing dim, a plain index) is the log of the probability they were drawn with."""
+    from torchrl.data import Categorical, OneHot
+
+    rows = 64
+    action_spec = {
+        "one-hot": OneHot(n=2, shape=(rows, 2), dtype=torch.int64),
+        "categorical [..., 1]": Categorical(n=2, shape=(rows, 1)),
+        "index": None,
+    }[spec]
+    policy = LinearQPolicy(
+        basis=_basis(),
+        theta=torch.linspace(-1, 1, 8),
+        epsilon=0.3,
+        action_spec=action_spec,
+        generator=torch.Generator().manual_seed(5),
+    )
+    obs = torch.linspace(0, 10, rows).unsqueeze(-1)
+    td = policy(TensorDict({"observation": obs}, batch_size=[rows]))
+    if action_spec is not None:
+        assert action_spec.is_in(td["action"])
+    index = td["action"].argmax(-1) if spec == "one-hot" else td["action"].reshape(rows)
+    drawn = td["sample_probs"].gather(-1, index.unsqueeze(-1)).squeeze(-1)
+    log_prob = policy.log_prob(obs, td["action"])
+    assert log_prob.shape == (rows,) and log_prob.dtype == torch.float64
+    assert torch.equal(log_prob, drawn.log())
+    assert len(set(index.tolist())) == 2  # both actions occur: the check covers both

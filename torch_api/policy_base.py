@@ -99,7 +99,8 @@ _GREEDY_EXPLORATION = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, Expl
 
 
 class ActionProbsPolicy(TensorDictModuleBase):
-    """Base of the library's policies: ``action_probs(obs) -> [..., A]`` plus sampling.
+    """Base of the library's policies: ``action_probs(obs) -> [..., A]``, ``log_prob(obs, a)``
+    (both pure functions of the observations) plus sampling.
 
     Subclasses implement ``_action_probs``. ``forward`` reads the observation, draws an
     action and writes ``action`` in the env's encoding and ``sample_probs`` (the distribution
@@ -228,6 +229,26 @@ class ActionProbsPolicy(TensorDictModuleBase):
         grid = obs.reshape(*lead, obs.shape[0] // trials, *obs.shape[1:])
         probs = self._action_probs(grid)
         return probs.reshape(*obs.shape[:-1], probs.shape[-1])
+
+    def log_prob(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``log pi(a|s)``: obs ``[..., d]`` and actions as this policy writes them (indices
+        ``[...]``, or one-hot ``[..., A]``) -> ``[...]`` float64 (``-inf`` where pi(a|s) = 0).
+
+        Pure: no random stream is touched. E.g. the sampling log-probabilities that per-decision
+        importance weights (eq. 21) need, for episodes another process collected.
+
+        Example:
+            >>> from torch_api.basis import GaussianActionBasis
+            >>> from torch_api.policies import LinearQPolicy
+            >>> basis = GaussianActionBasis(centers=torch.zeros(1, 1), tau=1.0, num_actions=2)
+            >>> theta = torch.tensor([0.0, 0.0, 1.0, 1.0])  # Q(s, right) > Q(s, left)
+            >>> pi = LinearQPolicy(basis=basis, theta=theta, epsilon=0.2)
+            >>> pi.log_prob(torch.zeros(2, 1), torch.tensor([1, 0])).exp()
+            tensor([0.9000, 0.1000], dtype=torch.float64)
+        """
+        probs = self.action_probs(obs)
+        index = self.action_encoding.decode(action, batch_dims=probs.ndim - 1)
+        return probs.gather(-1, index.unsqueeze(-1)).squeeze(-1).log()
 
     def with_action_spec(self, action_spec) -> ActionProbsPolicy:
         """The same policy (same parameters and random streams) writing actions in the encoding
