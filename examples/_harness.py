@@ -1,11 +1,11 @@
 """The paired experiment behind the iterative examples: runs, chunks, statistics and files.
 
 An experiment runs Algorithm 1 twice per schedule of rewarded episodes on the same seeds (a
-paired design): AL (``mode="active"``, the sampling policy chosen by J') and PL
-(``mode="passive"``). An example supplies what is its own — the environment, the basis, the
-evaluation of pi_{l+1}, as a function of one :class:`Chunk` that builds its run with
-:func:`make_iteration` and returns :func:`run_iterations` — and :func:`run_experiment` does the
-rest:
+paired design): AL (``selector=SamplingPolicySelector(...)``, the sampling policy chosen by J')
+and PL (``selector=None``: the evaluation policy samples). An example supplies what is its own —
+the environment, the basis, the evaluation of pi_{l+1}, as a function of one :class:`Chunk` that
+builds its run with :func:`make_iteration` and returns :func:`run_iterations` — and
+:func:`run_experiment` does the rest:
 
 1. the trials of every run split into chunks (``--chunks``), each run as one batched
    computation where ``--backend`` says (``torch_api.dispatch.run_chunks``), every chunk stored

@@ -1,10 +1,10 @@
 """Active vs passive policy iteration on the 10-state chain walk (paper section 4.2, Figure 8).
 
-For each schedule of rewarded episodes — 'decreasing' M = (5, 5, 3, 3, 3, 1, 1) and 'fixed'
-M = (3,) * 7, N = 10 steps each — it runs Algorithm 1 twice on the same seeds (paired design):
-AL (``mode="active"``: the sampling policy of every iteration chosen by J', Z = 5 repeats) and
-PL (``mode="passive"``: sample with the evaluation policy itself). All trials of a run are one
-batched computation (``num_trials``). After every iteration the performance of pi_{l+1} is
+For each schedule of rewarded episodes — 'decreasing' M = (5, 5, 3, 3, 3, 1, 1) and 'fixed' M =
+(3,) * 7, N = 10 steps each — it runs Algorithm 1 twice on the same seeds (paired design): AL (a
+``SamplingPolicySelector`` passed in: the sampling policy of every iteration chosen by J', Z = 5
+repeats) and PL (no selector: sample with the evaluation policy itself). All trials of a run are
+one batched computation (``num_trials``). After every iteration the performance of pi_{l+1} is
 measured twice:
 
 * ``test_return``: the paper's estimate (eq. 61), ``(1/50) Σ_m Σ_n γ^(n-1) r`` over 50 test

@@ -1,12 +1,12 @@
 """Active vs passive policy iteration on the ball-batting robot (paper section 5, Figure 10).
 
-For each schedule of rewarded episodes (``decreasing`` = 10, 10, 7, 7, 7, 4, 4 and ``fixed`` =
-7 × 7), an AL run (``mode="active"``: the sampling policy of each iteration is chosen by J',
-Algorithm 2) and a PL run (``mode="passive"``: the evaluation policy samples) are made with the
-same seed (a paired design), each running all trials as one batched computation. After every
-iteration l the performance of pi_{l+1} is measured per trial (eq. 68): the sum of the rewards of
-20 test episodes of 10 steps. The script prints mean ± standard error per iteration, the rewards
-bought, and a two-tailed paired t-test of AL vs PL at the last iteration; it writes
+For each schedule of rewarded episodes (``decreasing`` = 10, 10, 7, 7, 7, 4, 4 and ``fixed`` = 7
+× 7), an AL run (a ``SamplingPolicySelector`` passed in: the sampling policy of each iteration
+is chosen by J', Algorithm 2) and a PL run (no selector: the evaluation policy samples) are made
+with the same seed (a paired design), each running all trials as one batched computation. After
+every iteration l the performance of pi_{l+1} is measured per trial (eq. 68): the sum of the
+rewards of 20 test episodes of 10 steps. The script prints mean ± standard error per iteration,
+the rewards bought, and a two-tailed paired t-test of AL vs PL at the last iteration; it writes
 ``train_batting.csv`` (every number: one row per schedule × method × iteration × trial ×
 measure, ``examples/_harness.py``), ``train_batting.json`` (arguments, t-tests, physics steps,
 the runs' times) and ``fig10_performance.png``.
