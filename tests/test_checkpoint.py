@@ -1,6 +1,7 @@
 """Durable runs: resume equals the uninterrupted run, nothing is bought twice or overwritten
 silently, and bad files, bad places and other settings are refused with the path named."""
 
+import _thread
 import math
 import os
 import pickle
@@ -602,3 +603,33 @@ def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
         _api().load(path)
     assert "weights_only" not in str(info.value)
     assert not mark.exists()
+
+
+def test_a_signal_whose_handler_runs_right_after_a_commit_is_no_write_error(tmp_path):
+    """A SIGINT that reached Python just before a transaction began (the OS-level mask of
+    ``signals_held`` only holds later ones) runs its handler at the first bytecode after COMMIT.
+    The rows are committed and the interrupt goes on as one; it was a ``StoreWriteError``
+    ("cannot rollback - no transaction is active", exit 1 instead of 130: seen in a test run)."""
+    path = tmp_path / "run.db"
+    store = RunStore(path, config={})
+
+    class InterruptAfterCommit:  # the real connection; the interrupt lands after COMMIT
+        def __init__(self, db):
+            self.db = db
+
+        def execute(self, sql, *args):
+            result = self.db.execute(sql, *args)
+            if sql == "COMMIT":
+                _thread.interrupt_main()  # SIGINT at the Python level, as a pending handler
+            return result
+
+        def __getattr__(self, name):
+            return getattr(self.db, name)
+
+    connection = store._db
+    store._db = InterruptAfterCommit(connection)
+    with pytest.raises(KeyboardInterrupt):
+        store.put_record(1, {"iteration": 1})
+    store._db = connection
+    store.close()
+    assert RunStore.read(path).records == {1: {"iteration": 1}}

@@ -235,7 +235,10 @@ class RunStore:
                     yield self._db
                     self._db.execute("COMMIT")
                 except BaseException:
-                    self._db.execute("ROLLBACK")
+                    # (a signal handler that was pending before the mask may raise after COMMIT:
+                    # then there is nothing to roll back, and the interrupt goes on as such)
+                    if self._db.in_transaction:
+                        self._db.execute("ROLLBACK")
                     raise
             except (sqlite3.DatabaseError, OSError) as error:
                 raise self._write_error(error) from None
