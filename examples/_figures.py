@@ -66,10 +66,10 @@ def figure8(results: dict, optimal_return: float, path: Path) -> None:
     plt.close(fig)
 
 
-def figure10(results: dict, reference_optimum: float, ceiling: float, path: Path) -> None:
+def figure10(results: dict, reference_optimum: float, ceiling: float | None, path: Path) -> None:
     """Figure 10: performance per iteration (left) and the paired difference AL − PL (right)
     (batting). The reference optimum and the learner's measured ceiling with the paper's basis
-    are horizontal lines."""
+    (None: a learner whose ceiling was not measured) are horizontal lines."""
     fig, (ax, diff_ax) = plt.subplots(1, 2, figsize=(11, 4.2))
     trials = None
     for name, res in results.items():
@@ -106,6 +106,8 @@ def figure10(results: dict, reference_optimum: float, ceiling: float, path: Path
         (reference_optimum, "green", "-", "reference optimum (best open-loop sequence)"),
         (ceiling, "gray", "-.", "ceiling: LSPI, paper's basis, abundant random data"),
     ):
+        if level is None:
+            continue
         ax.axhline(level, color=colour, linewidth=1, linestyle=style)
         ax.text(1, level, text, va="bottom", fontsize=7, color=colour)
     ax.set_ylim(bottom=0, top=reference_optimum * 1.08)

@@ -279,6 +279,8 @@ def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
     proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
+    assert "no measured ceiling for this basis and learner" in proc.stdout
+    assert "paper-basis ceiling" not in proc.stdout  # measured for the paper's learner only
     bought = read_results(tmp_path / "train_batting.csv")
     for method in ("AL", "PL"):
         assert max(bought["decreasing", method, 2, "rewarded_transitions"]) <= 4 * STEPS
