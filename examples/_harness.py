@@ -176,6 +176,10 @@ class Experiment:
     """a top-level function (picklable): one chunk's run, :func:`run_iterations`' result"""
     t_tests: tuple[str, ...]
     """the measures compared by the paired t-test at the last iteration"""
+    report: Callable[[dict, float], dict]
+    """what the example prints and writes from ``(results, wall seconds)``, returning its
+    payload; it runs under the same signal guard as the runs (everything is stored by then, so
+    a signal while the files are written ends with the same line, and --resume writes them)"""
     run_seed: Callable[[int, str], int] = lambda seed, schedule: seed
     """the seed of the runs of a schedule (AL and PL share it), from ``--seed`` and its name"""
     store_stem: str = "{schedule}_{method}"
@@ -190,14 +194,14 @@ def store_path(out: Path, experiment: Experiment, schedule: str, method: str, c:
     return out / "checkpoints" / (stem + ("" if n == 1 else f"_chunk{c + 1}of{n}") + ".db")
 
 
-def run_experiment(
-    args, experiment: Experiment, on_checkpoint: Callable | None = None
-) -> tuple[dict, float]:
-    """Every run of the experiment, chunked where asked; ``(results, wall seconds)``.
+def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None = None) -> dict:
+    """Every run of the experiment, chunked where asked, then ``experiment.report(results,
+    wall seconds)``, whose payload it returns.
 
     Ends the script with one line where the output folder holds runs and neither ``--resume``
-    nor ``--overwrite`` was given, on SIGINT/SIGTERM and on a store error (see the module).
-    ``on_checkpoint``: given to every run (local backend only: it does not travel).
+    nor ``--overwrite`` was given, on SIGINT/SIGTERM (until the report is written) and on a
+    store error (see the module). ``on_checkpoint``: given to every run (local backend only: it
+    does not travel).
     """
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # quiet storage-creation notices
     if args.threads > 0:
@@ -239,10 +243,17 @@ def run_experiment(
                 address=getattr(args, "ray_address", "") or None,
                 num_cpus=getattr(args, "ray_cpus", 0) or None,
             )
+            results = assemble(experiment, parts, chunks)
+            return experiment.report(results, time.perf_counter() - started)
     except Interrupted as interrupt:
         exit_interrupted(interrupt.signum, stores, out / "checkpoints")
     except StoreError as error:
         exit_store_error(error)
+
+
+def assemble(experiment: Experiment, parts: list[dict], chunks: int) -> dict:
+    """The runs' chunks (in plan order) joined along the trial axis, with the t-tests."""
+    runs = [(name, method) for name in experiment.schedules for method in METHODS]
     results: dict = {}
     for j, (name, method) in enumerate(runs):
         entry = results.setdefault(name, {"schedule": list(experiment.schedules[name]), "runs": {}})
@@ -253,7 +264,7 @@ def run_experiment(
             m: {"iteration": al["iteration"], **paired_test(al[m], pl[m])}
             for m in experiment.t_tests
         }
-    return results, time.perf_counter() - started
+    return results
 
 
 # -- statistics ------------------------------------------------------------------------------

@@ -185,18 +185,8 @@ def run_chunk(chunk: harness.Chunk) -> dict:
     return harness.run_iterations(chunk, api, initial=evaluate(first))  # pi_1: iteration 0
 
 
-def main(argv=None) -> dict:
-    args = parse_args(argv)
-    names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    experiment = harness.Experiment(
-        name="chain_walk_api",
-        schedules={name: SCHEDULES[name][: args.iterations] for name in names},
-        run_chunk=run_chunk,
-        t_tests=("test_return", "exact_return"),
-        run_seed=lambda seed, name: 1000 * seed + 100 * list(SCHEDULES).index(name),
-        curves=(*MEASURES, "rewarded_transitions"),
-    )
-    results, wall = harness.run_experiment(args, experiment)
+def report(args: Args, experiment: harness.Experiment, results: dict, wall: float) -> dict:
+    """The tables, the files (JSON, CSV, Figure 8) of a finished experiment."""
     print(f"\nIterated chain walk: {args.trials} trials, mean ± s.e. over trials ({wall:.1f} s)")
     test = f"{args.test_episodes} test episodes of {args.test_steps} steps"
     title = f"performance of pi_{{l+1}}, eq. 61 ({test})"
@@ -209,6 +199,21 @@ def main(argv=None) -> dict:
     figure8(results, optimum, Path(args.out_dir) / "fig8_performance.png")
     print(f"wrote {args.out_dir}/chain_walk_api.json, chain_walk_api.csv and fig8_performance.png")
     return payload
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
+    experiment = harness.Experiment(
+        name="chain_walk_api",
+        schedules={name: SCHEDULES[name][: args.iterations] for name in names},
+        run_chunk=run_chunk,
+        t_tests=("test_return", "exact_return"),
+        report=lambda results, wall: report(args, experiment, results, wall),
+        run_seed=lambda seed, name: 1000 * seed + 100 * list(SCHEDULES).index(name),
+        curves=(*MEASURES, "rewarded_transitions"),
+    )
+    return harness.run_experiment(args, experiment)
 
 
 if __name__ == "__main__":

@@ -241,17 +241,8 @@ def run_chunk(chunk: harness.Chunk) -> dict:
     return run | {"data_check": check_episodes(api.rewarded.episodes())}
 
 
-def main(argv=None) -> dict:
-    args = parse_args(argv)
-    experiment = harness.Experiment(
-        name="gym_drop_in",
-        schedules={"custom": schedule_of(args)},
-        run_chunk=run_chunk,
-        t_tests=("steps_balanced",),
-        store_stem="{mode}",
-        curves=MEASURES,
-    )
-    results, wall = harness.run_experiment(args, experiment)
+def report(args: Args, experiment: harness.Experiment, results: dict, wall: float) -> dict:
+    """The tables, the files (JSON, CSV, figure) of a finished experiment."""
     print(f"\n{ENV_ID}: {args.trials} trials, mean ± s.e. over trials ({wall:.1f} s)")
     title = f"steps balanced (of {args.test_steps}) by pi_(l+1), its ε-greedy rule"
     harness.print_curves(results, "steps_balanced", title, digits=1)
@@ -265,6 +256,20 @@ def main(argv=None) -> dict:
     steps_balanced(results, ENV_ID, Path(args.out_dir) / "performance.png")
     print(f"wrote {args.out_dir}/gym_drop_in.json, gym_drop_in.csv and performance.png")
     return payload
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    experiment = harness.Experiment(
+        name="gym_drop_in",
+        schedules={"custom": schedule_of(args)},
+        run_chunk=run_chunk,
+        t_tests=("steps_balanced",),
+        report=lambda results, wall: report(args, experiment, results, wall),
+        store_stem="{mode}",
+        curves=MEASURES,
+    )
+    return harness.run_experiment(args, experiment)
 
 
 if __name__ == "__main__":

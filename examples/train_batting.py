@@ -314,20 +314,8 @@ def print_findings(results: dict, args: Args) -> None:
     )
 
 
-def main(argv=None, on_checkpoint=None) -> dict:
-    """The experiment; ``on_checkpoint(api)`` is called after every commit of every run
-    (``--backend local`` only)."""
-    args = parse_args(argv)
-    names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
-    experiment = harness.Experiment(
-        name="train_batting",
-        schedules={name: schedule_of(args, name) for name in names},
-        run_chunk=run_chunk,
-        t_tests=("performance",),
-        store_stem="{schedule}_{mode}",
-        curves=("performance", "hit_share", "rewarded_transitions"),
-    )
-    results, wall = harness.run_experiment(args, experiment, on_checkpoint=on_checkpoint)
+def report(args: Args, experiment: harness.Experiment, results: dict, wall: float) -> dict:
+    """The tables, the files (JSON, CSV, Figure 10) and the findings of a finished experiment."""
     audit = PhysicsAudit()
     for entry in results.values():
         for run in entry["runs"].values():
@@ -349,6 +337,23 @@ def main(argv=None, on_checkpoint=None) -> dict:
     print(f"wall time {wall:.1f} s; wrote {out}/train_batting.json, .csv, fig10_performance.png")
     print_findings(results, args)
     return payload
+
+
+def main(argv=None, on_checkpoint=None) -> dict:
+    """The experiment; ``on_checkpoint(api)`` is called after every commit of every run
+    (``--backend local`` only)."""
+    args = parse_args(argv)
+    names = list(SCHEDULES) if args.schedule == "both" else [args.schedule]
+    experiment = harness.Experiment(
+        name="train_batting",
+        schedules={name: schedule_of(args, name) for name in names},
+        run_chunk=run_chunk,
+        t_tests=("performance",),
+        report=lambda results, wall: report(args, experiment, results, wall),
+        store_stem="{schedule}_{mode}",
+        curves=("performance", "hit_share", "rewarded_transitions"),
+    )
+    return harness.run_experiment(args, experiment, on_checkpoint=on_checkpoint)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -22,6 +21,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 from _harness import COLUMNS, read_results  # noqa: E402
+from _waiting import wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
 
 pytestmark = pytest.mark.slow
 
@@ -237,25 +237,10 @@ def _start(script: str, *args: str) -> subprocess.Popen:
     )
 
 
-def _wait_for_episodes(store: Path, rows: int, proc: subprocess.Popen) -> None:
-    """Until the run at ``store`` holds at least ``rows`` bought episode rows."""
-    from torch_api.store import RunStore, StoreError
-
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and proc.poll() is None:
-        try:
-            if store.exists() and RunStore.read(store).num_episodes >= rows:
-                return
-        except StoreError:
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"{store} never held {rows} episode rows")
-
-
 def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_one_chunk, tmp_path):
     args = (*CHUNK_RUN, "--chunks", "1", "--out-dir", str(tmp_path))
     proc = _start("chain_walk_api.py", *args)
-    _wait_for_episodes(tmp_path / "checkpoints" / "decreasing_AL.db", 5, proc)  # iteration 1
+    wait_for_episodes(tmp_path / "checkpoints" / "decreasing_AL.db", 5, proc)  # iteration 1
     proc.kill()
     proc.communicate(timeout=60)
     again = _start("chain_walk_api.py", *args)
@@ -274,7 +259,7 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     expected = _outputs(tmp_path / "ref", "gym_drop_in")
     args += ("--out-dir", str(tmp_path))
     proc = _start("gym_drop_in.py", *args)
-    _wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
+    wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-3000:]
@@ -308,7 +293,9 @@ def test_the_long_layout_holds_every_number_once_and_reads_back(tmp_path):
         out_dir: str
         logger: str = "none"
 
-    experiment = Experiment(name="x", schedules={"fixed": [3]}, run_chunk=print, t_tests=())
+    experiment = Experiment(
+        name="x", schedules={"fixed": [3]}, run_chunk=print, t_tests=(), report=print
+    )
     write_results(Args(str(tmp_path)), experiment, results, wall=0.5)
     table = read_results(tmp_path / "x.csv")
     assert table["fixed", "AL", 1, "test_return"] == [1.5, 2.0, 3.0]

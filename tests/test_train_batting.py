@@ -23,6 +23,7 @@ INTERRUPTED = 3  # exit code of the driver when it stopped the run
 
 sys.path.insert(0, str(ROOT / "examples"))
 from _harness import read_results  # noqa: E402
+from _waiting import wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
 
 
 def run_script(out_dir: Path, *extra: str, stop_after: int = 0) -> subprocess.CompletedProcess:
@@ -222,7 +223,7 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
         time.sleep(seconds)
 
     killed = start()
-    once_storing(killed, 0.5)
+    wait_for_episodes(store, 1, killed)  # iteration 1's rewards committed, iteration 2 to come
     killed.kill()
     killed.communicate(timeout=60)
     stopped = start("--resume")
