@@ -2,11 +2,13 @@
 with its defaults (one-hot actions), batched envs from factories, a real ``Collector``'s
 batches, TorchRL's exploration types and a ``ProbabilisticActor``."""
 
+import math
+
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
-from torchrl.envs import GymEnv, ParallelEnv, SerialEnv, StepCounter, TransformedEnv
+from torchrl.envs import GymEnv, ParallelEnv, SerialEnv, StepCounter, Transform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
@@ -21,6 +23,7 @@ from torch_api import (
     collect_episodes,
 )
 from torch_api.policies import greedy_actions
+from torch_api.store import RunStore
 
 
 def cartpole():
@@ -316,9 +319,11 @@ def test_warm_start_from_collector_batches_of_an_actor():
     assert torch.isfinite(api.theta).all()
 
 
-def _whole_trajectories(max_steps):
+def _whole_trajectories(max_steps, *transforms):
     def make_collector(policy, num_episodes):
         env = TransformedEnv(cartpole(), StepCounter(max_steps=max_steps))
+        for transform in transforms:
+            env.append_transform(transform())
         return Collector(
             env,
             policy,
@@ -362,6 +367,56 @@ def test_iteration_and_selector_read_episodes_from_the_users_collector():
     )
     choice = selector.select(api.policy, [api.policy, _actor(cartpole())], bought)
     assert choice.episodes.shape == (1, 2, 2, 10) and torch.isfinite(choice.j_mean).all()
+
+
+class _NanInSecondEpisode(Transform):
+    """Measures a NaN reward on every step of the 2nd episode its env runs (while broken)."""
+
+    broken = True
+
+    def __init__(self):
+        super().__init__()
+        self.episodes_begun = 0
+
+    def _reset(self, tensordict, tensordict_reset):
+        self.episodes_begun += 1
+        return tensordict_reset
+
+    def _step(self, tensordict, next_tensordict):
+        if self.broken and self.episodes_begun == 2:
+            next_tensordict["reward"] = torch.full_like(next_tensordict["reward"], math.nan)
+        return next_tensordict
+
+
+def test_a_bad_reward_from_the_users_collector_keeps_the_valid_episodes(tmp_path):
+    """As with ``env.rollout``: the bad episode is named, the slice's others are committed."""
+    path = tmp_path / "run.db"
+
+    def api(**kwargs):
+        return ActivePolicyIteration(
+            env=cartpole(),
+            basis=cartpole_basis(),
+            schedule=(3, 2),
+            num_steps=10,
+            gamma=0.95,
+            collector=_whole_trajectories(10, _NanInSecondEpisode),
+            seed=0,
+            checkpoint_path=path,
+            **kwargs,
+        )
+
+    _NanInSecondEpisode.broken = True
+    broken = api()
+    with pytest.raises(ValueError, match=r"iteration 1: episode 1: rewards must be finite, got n"):
+        broken.step()
+    broken.close()
+    assert sorted(RunStore.read(path).episodes[1]) == [0, 2]
+    _NanInSecondEpisode.broken = False
+    resumed = api(resume=True)  # a repaired env buys episode 1 again, and only it
+    assert sorted(resumed._partial) == [0, 2]
+    resumed.run()
+    assert len(resumed.rewarded) == 3 + 2
+    assert torch.isfinite(resumed.rewarded.episodes()["next", "reward"]).all()
 
 
 def test_reward_free_workers_write_the_envs_encoding():

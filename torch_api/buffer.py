@@ -151,7 +151,7 @@ class EpisodeBuffer:
         """Real (unmasked) transitions held."""
         return int(self.episodes()["mask"].sum()) if len(self) else 0
 
-    def extend(self, episodes: TensorDictBase) -> None:
+    def extend(self, episodes: TensorDictBase, *, validate: bool = True) -> None:
         """Append episodes ``[*T, M, N]`` (validated first; the same T as those held).
 
         TorchRL data as TorchRL produces it is converted first (:func:`as_episodes`; a
@@ -159,9 +159,13 @@ class EpisodeBuffer:
         becomes the longest held. A trajectory whose end was cut off by the end of a collector
         batch is held open, and the piece of the same trajectory id in a later batch is joined
         to it (one episode, its importance weights running on).
+
+        ``validate=False`` skips :func:`validate_episodes`: the caller checks the episodes
+        itself before using them (e.g. episode by episode, to keep the valid ones).
         """
         episodes, traj_ids, going_on = _from_torchrl(episodes, rewarded=self.rewarded)
-        validate_episodes(episodes, rewarded=self.rewarded)
+        if validate:
+            validate_episodes(episodes, rewarded=self.rewarded)
         trial_dims = tuple(episodes.shape[:-2])
         if self._trial_dims is not None and trial_dims != self._trial_dims:
             raise ValueError(

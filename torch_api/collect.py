@@ -170,6 +170,7 @@ def collect_with_collector(
     rewarded: bool,
     iteration: int = 0,
     policy_id: int = 0,
+    validate: bool = True,
 ) -> TensorDict:
     """:func:`collect_episodes` through a TorchRL ``Collector`` of the user's own.
 
@@ -183,6 +184,8 @@ def collect_with_collector(
     The collector is shut down afterwards. The collector's env and its exploration type are the
     user's (a ``Collector`` samples, ``ExplorationType.RANDOM``, by default); every batch's
     actions are checked against the collector's ``env.action_spec`` where it has one.
+    With ``validate=False`` the episodes are not checked (:func:`validate_episodes`), neither
+    batch by batch nor at the end: the caller checks them (e.g. to keep the valid episodes).
 
     Returns:
         TensorDict ``[M, N]`` in the format of this module's docstring.
@@ -208,7 +211,7 @@ def collect_with_collector(
             if row_spec is not None:  # the batch's first step is always a real one
                 first = batch["action"].reshape(-1, *row_spec.shape)[0]
                 check_actions(row_spec, first, who=f"the collector's policy {_name(policy)}")
-            buffer.extend(batch)
+            buffer.extend(batch, validate=validate)
             if len(buffer) - len(buffer._open) >= num_episodes:
                 break
     finally:
@@ -233,18 +236,19 @@ def collect_with_collector(
     episodes = pad_steps(episodes, num_steps)
     episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
     episodes["policy_id"] = torch.full(episodes.shape, int(policy_id), dtype=torch.long)
-    validate_episodes(episodes, rewarded=rewarded)
+    if validate:
+        validate_episodes(episodes, rewarded=rewarded)
     return episodes
 
 
 def rollouts_or(collector: Callable | None) -> Callable:
     """The source of episodes, chosen once: ``source(env, policy, **kwargs)`` is
     :func:`collect_episodes` (``env.rollout``), or with a ``collector`` factory
-    :func:`collect_with_collector` (``env`` unused; its episodes are checked as they come)."""
+    :func:`collect_with_collector` (``env`` unused). Both take ``validate``."""
     if collector is None:
         return collect_episodes
 
-    def from_collector(env: EnvBase, policy, *, validate: bool = True, **kwargs) -> TensorDict:
+    def from_collector(env: EnvBase, policy, **kwargs) -> TensorDict:
         return collect_with_collector(collector, policy, **kwargs)
 
     return from_collector
