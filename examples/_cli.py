@@ -136,11 +136,12 @@ class ChunkOptions(RunOptions):
 
 
 def run_options_error(args) -> str | None:
-    """The rules between run options: ``--resume`` xor ``--overwrite``, ``--chunks`` <= trials."""
+    """The rules between run options: ``--resume`` xor ``--overwrite`` (in any script that
+    takes them), ``--chunks`` <= trials."""
+    if getattr(args, "resume", False) and getattr(args, "overwrite", False):
+        return "--resume and --overwrite exclude each other"
     if not isinstance(args, RunOptions):
         return None
-    if args.resume and args.overwrite:
-        return "--resume and --overwrite exclude each other"
     chunks = getattr(args, "chunks", 1)
     if chunks > args.trials:
         return f"--chunks must lie in 1..{args.trials} (--trials), got {chunks}"

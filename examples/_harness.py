@@ -233,22 +233,17 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     print(f"{len(plan)} chunks of about {args.trials // chunks} trials ({backend})")
     started = time.perf_counter()
-    try:
-        with raise_on_signals():
-            parts = run_chunks(
-                experiment.run_chunk,
-                plan,
-                backend=backend,
-                workers=getattr(args, "workers", 0) or None,
-                address=getattr(args, "ray_address", "") or None,
-                num_cpus=getattr(args, "ray_cpus", 0) or None,
-            )
-            results = assemble(experiment, parts, chunks)
-            return experiment.report(results, time.perf_counter() - started)
-    except Interrupted as interrupt:
-        exit_interrupted(interrupt.signum, stores, out / "checkpoints")
-    except StoreError as error:
-        exit_store_error(error)
+    with durable_runs(stores, out / "checkpoints"):
+        parts = run_chunks(
+            experiment.run_chunk,
+            plan,
+            backend=backend,
+            workers=getattr(args, "workers", 0) or None,
+            address=getattr(args, "ray_address", "") or None,
+            num_cpus=getattr(args, "ray_cpus", 0) or None,
+        )
+        results = assemble(experiment, parts, chunks)
+        return experiment.report(results, time.perf_counter() - started)
 
 
 def assemble(experiment: Experiment, parts: list[dict], chunks: int) -> dict:
@@ -445,6 +440,20 @@ def raise_on_signals() -> Iterator[None]:
     finally:
         for sig, old in before.items():
             signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def durable_runs(paths: Sequence[Path], where: str | os.PathLike) -> Iterator[None]:
+    """The block runs (and stores) the runs at ``paths``; SIGINT/SIGTERM end it with the one
+    line of :func:`exit_interrupted` (exit 130/143, the commit in flight completed), a store
+    error with the one line of :func:`exit_store_error` (exit 1)."""
+    try:
+        with raise_on_signals():
+            yield
+    except Interrupted as interrupt:
+        exit_interrupted(interrupt.signum, paths, where)
+    except StoreError as error:
+        exit_store_error(error)
 
 
 def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:

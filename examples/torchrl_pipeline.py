@@ -19,6 +19,17 @@ MountainCar pays -1 per step until the car reaches the flag (at most 200 steps):
 test episode is minus its length, -200 when the car never gets there.
 
     python examples/torchrl_pipeline.py
+
+Durable, like every experiment example: the user's pipeline keeps what it buys in the library's
+:class:`~torch_api.store.RunStore` at ``<out-dir>/checkpoints/torchrl_pipeline.db`` — each
+iteration's selection (J', the reward-free episodes) before the rewarded episodes it buys, those
+episodes before θ is fitted on them, θ and the iteration's row after. A folder holding a run is
+refused unless ``--resume`` (continue it: stored rewards are reused, never bought again) or
+``--overwrite`` (discard it) is given; SIGINT/SIGTERM finish the commit in flight and end with
+one line (exit 130/143). The collector's env is the user's, so the example seeds it itself: every
+iteration's draws (torch's generator, which the policies and the actor sample from, and the
+envs' seeds) come from ``derive_seed(seed, l, stream)``, not from one stream running through the
+whole run, so a resumed run buys and measures exactly what an uninterrupted one does.
 """
 
 from __future__ import annotations
@@ -35,11 +46,16 @@ class Args(SelectionOptions):
     repeats: int = field(2, low=1)
     """Z, J-values averaged into J'"""
     seed: int = 0
-    """seed of torch's global generator (the policies' draws) and of the environments"""
+    """seed of the run: every iteration's draws (torch's generator, the environments' seeds) are
+    derived from (seed, iteration)"""
     gamma: float = field(0.99, above=0.0, high=1.0)
     """discount γ, in (0, 1]"""
     out_dir: str = "results/torchrl_pipeline"
-    """where the JSON goes"""
+    """where the JSON and the stored run go"""
+    resume: bool = False
+    """continue the run stored in out_dir (its stored rewards are reused, never bought again)"""
+    overwrite: bool = False
+    """discard the run stored in out_dir and start over"""
     iterations: int = field(5, low=1)
     """L, policy iterations"""
     episodes: int = field(6, low=1)
@@ -59,7 +75,6 @@ class Args(SelectionOptions):
 UNAVAILABLE = not_here("backend") | {
     "trials": "one run of the pipeline, as a user would write it",
     "device": "MountainCar steps in Python on the CPU (Gymnasium); the algebra is small",
-    "resume": "a run keeps no checkpoints; rerun it",
 }
 
 
@@ -77,6 +92,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+import _harness as harness
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -90,8 +106,12 @@ from torch_api import GaussianActionBasis, LinearQPolicy, PsiHat, SamplingPolicy
 from torch_api.design import build_design
 from torch_api.episodes import as_episodes
 from torch_api.solve import weighted_ridge
+from torch_api.store import RunStore, StoredRun
+from torch_api.streams import derive_seed
 
 ENV_ID = "MountainCar-v0"
+STORE = "checkpoints/torchrl_pipeline.db"
+"""the run's store, under --out-dir"""
 
 
 def make_env(max_steps: int) -> TransformedEnv:
@@ -117,27 +137,57 @@ class PushWithVelocity(nn.Module):
         return self.sharpness * torch.cat([-velocity, torch.zeros_like(velocity), velocity], -1)
 
 
-def test_returns(policy, env_rows, episodes: int, steps: int) -> list[float]:
-    """Returns of ``episodes`` greedy episodes of ``policy`` in ``env.rollout``."""
-    env = env_rows(episodes)
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
+def mean_return(policy, env, steps: int, exploration: ExplorationType) -> float:
+    """Mean return of one ``env.rollout`` of ``policy`` (one episode a row of ``env``)."""
+    with set_exploration_type(exploration):
         rollout = env.rollout(steps, policy, break_when_any_done=False)
     env.close()
     done = as_episodes(rollout, rewarded=True)  # steps after each episode's end are masked
-    return (done["next", "reward"] * done["mask"]).sum(-1).tolist()
+    return float((done["next", "reward"] * done["mask"]).sum(-1).mean())
+
+
+def run_config(args: Args) -> dict:
+    """The settings that give the stored run its meaning (a resume must match them)."""
+    skip = ("out_dir", "resume", "overwrite")
+    settings = {k: v for k, v in dataclasses.asdict(args).items() if k not in skip}
+    return settings | {"schedule": [args.episodes] * args.iterations}
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    torch.manual_seed(args.seed)
-    started = time.perf_counter()
-    n = args.steps
+    path = Path(args.out_dir) / STORE
+    if (why := harness.stored_runs_error([path], args.resume, args.overwrite)) is not None:
+        raise SystemExit(f"error: {why}")
+    with harness.durable_runs([path], path.parent):  # one line on a signal or a store error
+        config = run_config(args)
+        with RunStore(path, config=config, resume=args.resume, overwrite=args.overwrite) as store:
+            return run(args, store)
 
-    def env_rows(rows: int) -> SerialEnv:
+
+def run(args: Args, store: RunStore) -> dict:
+    """The pipeline, every purchase stored in ``store`` before it is used (what ``store``
+    holds already is used instead of buying it again)."""
+    started = time.perf_counter()
+    n, m = args.steps, args.episodes
+    stored = store.stored or StoredRun(config=store.config)
+    if store.stored is not None:
+        print(
+            f"resumed {store.path} at iteration {len(stored.records)}/{args.iterations}: "
+            f"{stored.num_episodes} rewarded episodes stored"
+        )
+    elif args.resume:
+        print(f"nothing stored in {store.path}: starting it fresh")
+
+    def env_rows(rows: int, seed: int | None = None) -> SerialEnv:
         env = SerialEnv(rows, partial(make_env, n))
-        env.set_seed(args.seed + rows)
+        if seed is not None:
+            env.set_seed(seed)
         return env
+
+    def seed(it: int, stream: str) -> int:
+        """The seed of one stream of iteration ``it`` (torch's generator or an env)."""
+        return derive_seed(args.seed, it, stream)
 
     env = make_env(n)
     axis = torch.linspace(-1, 1, args.grid)
@@ -160,12 +210,12 @@ def main(argv=None) -> dict:
         spec=env.action_spec,
     )
     # The user's own episode stores: one item an episode of N steps (padded, masked).
-    capacity = args.iterations * max(args.episodes, args.repeats * 3 * args.reward_free_episodes)
+    capacity = args.iterations * max(m, args.repeats * 3 * args.reward_free_episodes)
     rewarded = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, ndim=1))
     reward_free = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, ndim=1))
 
     theta = torch.ones(basis.num_features, dtype=torch.float64)  # Q̂_0 = Σ_b phi_b
-    history = []
+    history, bought = [], 0
     for it in range(1, args.iterations + 1):
         epsilon = 0.15 / it
         policy = LinearQPolicy(
@@ -176,49 +226,73 @@ def main(argv=None) -> dict:
             f"ε-greedy θ (ε = {epsilon + 0.5:.3f})": policy.with_rule(epsilon=epsilon + 0.5),
             "push with velocity (ProbabilisticActor)": actor,
         }
-        # 1. choose the sampling policy from reward-free episodes (Algorithm 2)
-        earlier = rewarded.storage[: len(rewarded)] if len(rewarded) else None
-        choice = selector.select(policy, list(candidates.values()), earlier, iteration=it)
-        reward_free.extend(
-            as_episodes(choice.episodes.reshape(-1, n), rewarded=False, taken_log_prob=True)
-        )
-        name, sampler = list(candidates.items())[int(choice.index)]
-        # 2. buy M rewarded episodes with it: a Collector yielding whole trajectories
-        collector = Collector(
-            env_rows(args.episodes),
-            sampler,
-            frames_per_batch=args.episodes * n,
-            total_frames=-1,
-            trajs_per_batch=args.episodes,
-            traj_format="padded",
-            auto_register_policy_transforms=False,
-        )
-        batch = next(iter(collector))
-        collector.shutdown()
-        rewarded.extend(as_episodes(batch, rewarded=True, num_steps=n, taken_log_prob=True))
+        # 1. choose the sampling policy from reward-free episodes (Algorithm 2), stored
+        if it not in stored.selections:
+            torch.manual_seed(seed(it, "reward_free_policy"))  # the candidates' draws
+            selector.seed_env(args.repeats * args.reward_free_episodes, seed(it, "reward_free_env"))
+            earlier = rewarded.storage[: len(rewarded)] if len(rewarded) else None
+            choice = selector.select(policy, list(candidates.values()), earlier, iteration=it)
+            stored.selections[it] = {
+                "index": int(choice.index),
+                "j_mean": choice.j_mean.tolist(),
+                "reward_free_transitions": choice.reward_free_transitions,
+            }
+            stored.free[it] = as_episodes(
+                choice.episodes.reshape(-1, n), rewarded=False, taken_log_prob=True
+            )
+            store.put_selection(it, stored.selections[it], stored.free[it])
+        selection = stored.selections[it]
+        reward_free.extend(stored.free[it])
+        name, sampler = list(candidates.items())[selection["index"]]
+        # 2. buy M rewarded episodes with it: a Collector yielding whole trajectories, stored
+        if len(stored.episodes.get(it, {})) < m:
+            torch.manual_seed(seed(it, "policy"))  # the sampler's draws
+            collector = Collector(
+                env_rows(m, seed(it, "rewarded_env")),
+                sampler,
+                frames_per_batch=m * n,
+                total_frames=-1,
+                trajs_per_batch=m,
+                traj_format="padded",
+                auto_register_policy_transforms=False,
+            )
+            batch = next(iter(collector))
+            collector.shutdown()
+            new = as_episodes(batch, rewarded=True, num_steps=n, taken_log_prob=True)
+            stored.episodes[it] = dict(enumerate(new.unbind(0)))
+            store.put_episodes(it, stored.episodes[it])
+            bought += m
+        new = torch.stack([stored.episodes[it][j] for j in range(m)])  # [M, N]
+        rewarded.extend(new)
         # 3. fit θ on every rewarded episode so far (eq. 20-28), importance-weighted to pi_l
         episodes = rewarded.storage[: len(rewarded)]
-        design = build_design(episodes, policy, psi)
-        theta = weighted_ridge(
-            design.x, design.w, design.reward, args.lam, num_samples=design.num_samples
-        )
-        # 4. the greedy policy of the new θ, tested in env.rollout
-        greedy = LinearQPolicy(basis=basis, theta=theta, epsilon=0.0, action_spec=env.action_spec)
-        returns = test_returns(greedy, env_rows, args.test_episodes, n)
-        history.append(
-            {
+        if it not in stored.records:
+            design = build_design(episodes, policy, psi)
+            theta = weighted_ridge(
+                design.x, design.w, design.reward, args.lam, num_samples=design.num_samples
+            )
+            # 4. the greedy policy of the new θ, tested in env.rollout
+            greedy = LinearQPolicy(
+                basis=basis, theta=theta, epsilon=0.0, action_spec=env.action_spec
+            )
+            torch.manual_seed(seed(it, "evaluation"))
+            test_env = env_rows(args.test_episodes, seed(it, "evaluation"))
+            row = {
                 "iteration": it,
                 "chosen": name,
-                "j_mean": choice.j_mean.tolist(),
+                "j_mean": selection["j_mean"],
                 "rewarded_transitions": int(episodes["mask"].sum()),
-                "reward_free_transitions": choice.reward_free_transitions,
-                "bought_returns": (batch["next", "reward"].squeeze(-1) * batch["collector", "mask"])
-                .sum(-1)
-                .tolist(),
-                "greedy_test_return": sum(returns) / len(returns),
+                "reward_free_transitions": selection["reward_free_transitions"],
+                "bought_returns": (new["next", "reward"] * new["mask"]).sum(-1).tolist(),
+                "greedy_test_return": mean_return(
+                    greedy, test_env, n, ExplorationType.DETERMINISTIC
+                ),
             }
-        )
-        row = history[-1]
+            stored.records[it] = row | {"theta": theta.tolist()}
+            store.put_record(it, stored.records[it])
+        row = {k: v for k, v in stored.records[it].items() if k != "theta"}
+        theta = torch.tensor(stored.records[it]["theta"], dtype=torch.float64)
+        history.append(row)
         print(
             f"iteration {it}: chose {name!r} (J' = "
             + ", ".join(f"{j:.3g}" for j in row["j_mean"])
@@ -226,20 +300,18 @@ def main(argv=None) -> dict:
             f"{row['greedy_test_return']:.1f}",
             flush=True,
         )
+    selector.close()
+    torch.manual_seed(seed(0, "evaluation"))  # the actor alone, sampling
+    test_env = env_rows(args.test_episodes, seed(0, "evaluation"))
     baseline = {
-        "push with velocity (ProbabilisticActor, RANDOM)": None,
+        "push with velocity (ProbabilisticActor, RANDOM)": mean_return(
+            actor, test_env, n, ExplorationType.RANDOM
+        ),
     }
-    env_test = env_rows(args.test_episodes)
-    with set_exploration_type(ExplorationType.RANDOM):
-        rollout = env_test.rollout(n, actor, break_when_any_done=False)
-    env_test.close()
-    done = as_episodes(rollout, rewarded=True)
-    baseline["push with velocity (ProbabilisticActor, RANDOM)"] = float(
-        (done["next", "reward"] * done["mask"]).sum(-1).mean()
-    )
     wall = time.perf_counter() - started
     print(f"the actor candidate alone (sampling): mean return {list(baseline.values())[0]:.1f}")
     print(f"reward-free episodes kept in the user's buffer: {len(reward_free)}; {wall:.1f} s wall")
+    print(f"bought {bought} rewarded episodes in this run (stored in {store.path})")
     out = Path(args.out_dir)
     payload = {
         "args": dataclasses.asdict(args),

@@ -141,6 +141,21 @@ def test_a_flag_the_script_cannot_honour_is_refused_with_the_reason(script):
         assert f"is not available in {script}:" in done.stderr, done.stderr
 
 
+DURABLE = [script for script in SCRIPTS if {"resume", "overwrite"} <= _fields(script)]
+
+
+def test_the_durable_scripts_are_known():
+    assert "torchrl_pipeline.py" in DURABLE and "gym_drop_in.py" in DURABLE
+
+
+@pytest.mark.parametrize("script", DURABLE)
+def test_resume_with_overwrite_is_one_line_before_any_work(script, tmp_path):
+    done, seconds = _run(script, "--resume", "--overwrite", "--out-dir", str(tmp_path))
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "error: --resume and --overwrite exclude each other" in done.stderr
+    assert "Traceback" not in done.stderr and seconds < HELP_SECONDS
+
+
 def test_backends_match_the_library():
     from torch_api.dispatch import BACKENDS
 

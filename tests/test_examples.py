@@ -270,6 +270,40 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert _outputs(tmp_path, "gym_drop_in") == expected
 
 
+PIPELINE_RUN = ("--iterations", "3", "--episodes", "2", "--reward-free-episodes", "1")
+PIPELINE_RUN += ("--repeats", "1", "--steps", "20", "--test-episodes", "2")
+
+
+def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
+    """The user's Collector and ProbabilisticActor, SIGKILLed once a bought episode is stored:
+    --resume keeps every stored reward (buys only the rest) and ends with the numbers of an
+    uninterrupted run; a second run into the folder without --resume/--overwrite is refused."""
+    from torch_api.store import RunStore
+
+    _run("torchrl_pipeline.py", *PIPELINE_RUN, "--out-dir", str(tmp_path / "ref"))
+    expected = _without_times(json.loads((tmp_path / "ref" / "torchrl_pipeline.json").read_text()))
+    args = (*PIPELINE_RUN, "--out-dir", str(tmp_path))
+    store = tmp_path / "checkpoints" / "torchrl_pipeline.db"
+    proc = _start("torchrl_pipeline.py", *args)
+    wait_for_episodes(store, 2, proc)  # iteration 1's rewarded episodes are committed
+    proc.kill()
+    proc.communicate(timeout=60)
+    kept = RunStore.read(store).num_episodes
+    assert 2 <= kept < 3 * 2  # killed before its end
+    again = _start("torchrl_pipeline.py", *args)
+    _, err = again.communicate(timeout=120)
+    assert again.returncode == 1 and "Traceback" not in err
+    assert err.strip().splitlines() == [
+        f"error: runs are stored already ({store}); add --resume to continue them or "
+        "--overwrite to discard them"
+    ]
+    out = _run("torchrl_pipeline.py", *args, "--resume")
+    assert f"resumed {store} at iteration" in out
+    assert f"bought {3 * 2 - kept} rewarded episodes in this run" in out  # none twice
+    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+    assert _without_times(payload) == expected
+
+
 def test_the_long_layout_holds_every_number_once_and_reads_back(tmp_path):
     """``_harness``: chunks concatenated along the trial axis, one CSV row per number (a number
     of the iteration repeated per trial, J' per candidate), read back as written."""
