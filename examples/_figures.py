@@ -13,7 +13,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from _harness import mean_se
+from _results import mean_se
 
 COLOURS = {"AL": "tab:red", "PL": "tab:blue"}
 STYLES = {"decreasing": "-", "fixed": "--"}
