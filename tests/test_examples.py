@@ -21,7 +21,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 from _harness import COLUMNS, read_results  # noqa: E402
-from _waiting import wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
+from _processes import start_example, wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
 
 pytestmark = pytest.mark.slow
 
@@ -223,27 +223,13 @@ def test_torchrl_pipeline(tmp_path):
 # -- durable runs: a killed or interrupted example resumes to the uninterrupted numbers ----------
 
 
-def _start(script: str, *args: str) -> subprocess.Popen:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    env["OMP_NUM_THREADS"] = "1"
-    return subprocess.Popen(
-        [sys.executable, str(ROOT / "examples" / script), *args],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
 def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_one_chunk, tmp_path):
     args = (*CHUNK_RUN, "--chunks", "1", "--out-dir", str(tmp_path))
-    proc = _start("chain_walk_api.py", *args)
+    proc = start_example("chain_walk_api.py", *args)
     wait_for_episodes(tmp_path / "checkpoints" / "decreasing_AL.db", 5, proc)  # iteration 1
     proc.kill()
     proc.communicate(timeout=60)
-    again = _start("chain_walk_api.py", *args)
+    again = start_example("chain_walk_api.py", *args)
     _, err = again.communicate(timeout=120)
     assert again.returncode == 1 and "add --resume to continue them or --overwrite" in err
     out = _run("chain_walk_api.py", *args, "--resume")
@@ -258,7 +244,7 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert "starting it fresh" in fresh
     expected = _outputs(tmp_path / "ref", "gym_drop_in")
     args += ("--out-dir", str(tmp_path))
-    proc = _start("gym_drop_in.py", *args)
+    proc = start_example("gym_drop_in.py", *args)
     wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
@@ -284,13 +270,13 @@ def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
     expected = _without_times(json.loads((tmp_path / "ref" / "torchrl_pipeline.json").read_text()))
     args = (*PIPELINE_RUN, "--out-dir", str(tmp_path))
     store = tmp_path / "checkpoints" / "torchrl_pipeline.db"
-    proc = _start("torchrl_pipeline.py", *args)
+    proc = start_example("torchrl_pipeline.py", *args)
     wait_for_episodes(store, 2, proc)  # iteration 1's rewarded episodes are committed
     proc.kill()
     proc.communicate(timeout=60)
     kept = RunStore.read(store).num_episodes
     assert 2 <= kept < 3 * 2  # killed before its end
-    again = _start("torchrl_pipeline.py", *args)
+    again = start_example("torchrl_pipeline.py", *args)
     _, err = again.communicate(timeout=120)
     assert again.returncode == 1 and "Traceback" not in err
     assert err.strip().splitlines() == [

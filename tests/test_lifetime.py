@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _processes import running  # (tests/ is on sys.path)
 
 LIFETIME = Path(__file__).resolve().parents[1] / "torch_api" / "lifetime.py"
 # the module alone (stdlib only), without importing torch through the package
@@ -20,19 +21,11 @@ LOAD = textwrap.dedent(f"""
 """)
 
 
-def _running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 def _gone_within(pid: int, seconds: float) -> bool:
     deadline = time.monotonic() + seconds
-    while _running(pid) and time.monotonic() < deadline:
+    while running(pid) and time.monotonic() < deadline:
         time.sleep(0.05)
-    return not _running(pid)
+    return not running(pid)
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
@@ -50,7 +43,7 @@ def test_a_worker_dies_with_its_killed_parent():
     """)
     proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
     child = int(proc.stdout.readline())
-    assert _running(child)
+    assert running(child)
     proc.kill()
     proc.wait(timeout=30)
     assert _gone_within(child, 10), "the worker outlived its killed parent"

@@ -23,7 +23,7 @@ INTERRUPTED = 3  # exit code of the driver when it stopped the run
 
 sys.path.insert(0, str(ROOT / "examples"))
 from _harness import read_results  # noqa: E402
-from _waiting import wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
+from _processes import children, running, start_example, wait_for_episodes  # noqa: E402
 
 
 def run_script(out_dir: Path, *extra: str, stop_after: int = 0) -> subprocess.CompletedProcess:
@@ -170,26 +170,6 @@ def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_pa
     assert RunStore.read(tmp_path / "checkpoints" / "decreasing_active.db").episodes == {}
 
 
-def _children(pid: int) -> list[int]:
-    kids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            kids.append(int(stat.parent.name))
-    return kids
-
-
-def _running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to find the workers")
 def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
     uninterrupted, tmp_path
@@ -203,14 +183,7 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
     store = tmp_path / "checkpoints" / "decreasing_active.db"
 
     def start(*extra):
-        return subprocess.Popen(
-            [sys.executable, str(SCRIPT), *TINY, "--out-dir", str(tmp_path), *extra],
-            env=env,
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        return start_example("train_batting.py", *TINY, "--out-dir", str(tmp_path), *extra)
 
     def once_storing(proc, seconds):
         """Until ``proc`` holds the run's lock (its pid is in the lock file), then seconds."""
@@ -264,14 +237,14 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
     deadline = time.monotonic() + 120
     while not list((out / "checkpoints").glob("*.db")) and time.monotonic() < deadline:
         time.sleep(0.05)
-    workers = [k for k in _children(parent.pid) if _running(k)]
+    workers = [k for k in children(parent.pid) if running(k)]
     assert workers, "no worker processes found"
     parent.kill()
     parent.wait(timeout=30)
     deadline = time.monotonic() + 60  # (a worker still importing torch dies once it is done)
-    while any(_running(w) for w in workers) and time.monotonic() < deadline:
+    while any(running(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not any(_running(w) for w in workers), "workers outlived their killed parent"
+    assert not any(running(w) for w in workers), "workers outlived their killed parent"
 
 
 def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
