@@ -1,20 +1,23 @@
 """Machinery the environments share: argument checks, the done-spec and the random streams.
 
-Every env of this package draws its randomness from ``torch.Generator`` objects it owns
-(:class:`RandomStreams`), never from global state, and can give equal consecutive blocks of its
-rows (one block per independent trial) a stream each, so that a batched run of many trials
-reproduces one-at-a-time runs. The done-spec is the same for every env: ``done``,
-``terminated`` and ``truncated`` as bool ``[*batch, 1]``.
+Every env of this package draws its randomness from counter-based streams it owns
+(:class:`RandomStreams`, on :mod:`counter_rng`), never from global state, and can give equal
+consecutive blocks of its rows (one block per independent trial) a stream each, so that a
+batched run of many trials reproduces one-at-a-time runs. The done-spec is the same for every
+env: ``done``, ``terminated`` and ``truncated`` as bool ``[*batch, 1]``.
 
-Nothing here imports ``torch_api``.
+Nothing here imports ``torch_api`` (:mod:`counter_rng` is a floor below both).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from torchrl.data import Categorical, Composite
+
+from counter_rng import CounterStreams, fresh_key
+from counter_rng.streams import KEY_BITS
 
 __all__ = [
     "RandomStreams",
@@ -41,7 +44,7 @@ def check_seed(seed) -> int | None:
 
 def fresh_seed() -> int:
     """A seed from fresh entropy; leaves torch's global generator alone."""
-    return int(torch.Generator().seed())
+    return fresh_key()
 
 
 def done_spec(shape: torch.Size, device: torch.device) -> Composite:
@@ -63,12 +66,14 @@ def done_spec(shape: torch.Size, device: torch.device) -> Composite:
 
 
 class RandomStreams:
-    """An env's random streams: one ``torch.Generator`` (on the CPU), or one per block of rows.
+    """An env's random streams: one counter-based stream, or one per block of rows.
 
     :meth:`seed` sets the single stream (``None``: fresh entropy) and drops any block streams;
     :meth:`set_block_seeds` gives each of ``len(seeds)`` equal, consecutive blocks of the
     ``rows`` rows a stream of its own, so block ``b`` draws exactly what a one-block env seeded
-    with ``seeds[b]`` would. :meth:`draw` calls a torch sampler with the right generator(s).
+    with ``seeds[b]`` would (:class:`counter_rng.CounterStreams`: every number a pure function
+    of the block's key and the draw's counter, all blocks in one computation). The draws are
+    made on the CPU, so a seed gives the same numbers whatever the env's device.
 
     Args:
         rows: the env's number of rows (the batch's element count).
@@ -76,47 +81,56 @@ class RandomStreams:
 
     Example:
         >>> streams = RandomStreams(rows=4)
-        >>> streams.seed(0)
         >>> streams.set_block_seeds([1, 2])
-        >>> a = streams.draw(torch.rand, torch.Size([4]))
-        >>> b = torch.rand((2,), generator=torch.Generator().manual_seed(2))
-        >>> torch.equal(a[2:], b)
+        >>> a = streams.uniform(torch.Size([4]))
+        >>> alone = RandomStreams(rows=2)
+        >>> alone.seed(2)
+        >>> torch.equal(a[2:], alone.uniform(torch.Size([2])))
         True
     """
 
     def __init__(self, *, rows: int, what: str = "rows") -> None:
         self.rows = rows
         self.what = what
-        self.rng = torch.Generator()
-        self.block_rngs: list[torch.Generator] | None = None
+        self.single = CounterStreams(fresh_seed())
+        self.blocks: CounterStreams | None = None
+
+    @property
+    def current(self) -> CounterStreams:
+        """The streams the next whole-batch draw comes from (the blocks' where set)."""
+        return self.single if self.blocks is None else self.blocks
 
     def seed(self, seed: int | None) -> None:
-        """One stream seeded with ``seed`` (``None``: fresh entropy); no block streams."""
-        if seed is None:
-            seed = fresh_seed()
-        self.rng = torch.Generator().manual_seed(int(seed))
-        self.block_rngs = None
+        """One stream keyed by ``seed`` (``None``: fresh entropy); no block streams."""
+        self.single = CounterStreams(_key(fresh_seed() if seed is None else seed))
+        self.blocks = None
 
     def set_block_seeds(self, seeds: Sequence[int]) -> None:
         """One stream per block: ``len(seeds)`` must divide the number of rows."""
-        if not seeds or self.rows % len(seeds):
+        keys = torch.as_tensor(seeds, dtype=torch.int64).reshape(-1)
+        if not len(keys) or self.rows % len(keys):
             raise ValueError(
                 f"seeds must split the {self.rows} {self.what} into equal blocks, "
-                f"got {len(seeds)} seeds"
+                f"got {len(keys)} seeds"
             )
-        self.block_rngs = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
+        self.blocks = CounterStreams(keys & _KEY_MASK)
 
-    def draw(
-        self, sampler: Callable[..., torch.Tensor], shape: torch.Size, *args, **kwargs
-    ) -> torch.Tensor:
-        """``sampler(*args, shape, generator=..., **kwargs)`` on the CPU.
+    def uniform(self, shape: torch.Size) -> torch.Tensor:
+        """float64 uniforms in (0, 1), the leading dim split over the block streams."""
+        return self.current.uniform(shape)
 
-        With block streams, the leading dimension of ``shape`` is split into equal blocks, each
-        drawn from its own stream and concatenated; otherwise the single stream draws it all.
-        """
-        if self.block_rngs is None:
-            return sampler(*args, shape, generator=self.rng, **kwargs)
-        rows = shape[0] // len(self.block_rngs)
-        return torch.cat(
-            [sampler(*args, (rows, *shape[1:]), generator=rng, **kwargs) for rng in self.block_rngs]
-        )
+    def integers(self, low: int, high: int, shape: torch.Size) -> torch.Tensor:
+        """int64 integers in ``[low, high)``, the leading dim split over the block streams."""
+        return self.current.integers(low, high, shape)
+
+    def normal(self, shape: torch.Size) -> torch.Tensor:
+        """float64 standard normals, the leading dim split over the block streams."""
+        return self.current.normal(shape)
+
+
+_KEY_MASK = (1 << KEY_BITS) - 1
+
+
+def _key(seed: int) -> int:
+    """A stream's key of a seed: the seed itself where it is a 63-bit key, else its low bits."""
+    return int(seed) & _KEY_MASK

@@ -92,12 +92,13 @@ import _harness as harness
 import torch
 from _figures import figure8
 
+from counter_rng import CounterStreams, derive_keys
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from envs.chain_walk.exact import expected_discounted_return
 from envs.chain_walk.model import GAMMA, N_ACTIONS, chain_walk_model, optimal_policy
 from torch_api.basis import GaussianActionBasis
 from torch_api.data import REWARD_KEY, collect_episodes
-from torch_api.policies import LinearQPolicy
+from torch_api.policies import LinearQPolicy, TabularPolicy
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 MEASURES = ("test_return", "exact_return", "percent_optimal")
@@ -109,6 +110,11 @@ def env_factory(run_seed: int, role: int, device: str = "cpu"):
     return lambda batch: ChainWalkEnv(
         batch_size=batch, seed=harness.derived_seed(run_seed, role, batch), device=device
     )
+
+
+def state_index(obs: torch.Tensor) -> torch.Tensor:
+    """Chain-walk observation (the state number 1 … 10) -> table row 0 … 9."""
+    return obs[..., 0].round().long() - 1
 
 
 def optimal_return(horizon: int) -> float:
@@ -141,13 +147,14 @@ def make_evaluator(args: Args, trials: int):
     discounts = GAMMA ** torch.arange(n, dtype=torch.float64, device=env.device)
 
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
-        env.set_block_seeds(
-            [harness.derived_seed(g.initial_seed(), _ROLE_TEST) for g in policy.block_generators]
-        )
-        episodes = collect_episodes(env, policy, num_episodes=m, num_steps=n, rewarded=True)
+        env.set_block_seeds(derive_keys(policy.counter_streams.keys, _ROLE_TEST))
+        table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
+        # The same policy as a table over the 10 states (and the same streams): its test
+        # episodes gather pi(·|s) instead of evaluating the basis at every step.
+        tabular = TabularPolicy(table=table, state_index=state_index, streams=policy.streams)
+        episodes = collect_episodes(env, tabular, num_episodes=m, num_steps=n, rewarded=True)
         reward = episodes[REWARD_KEY].to(torch.float64) * episodes["mask"]  # [T, m, n]
         test_return = (reward * discounts).sum(-1).mean(-1)  # eq. 61, [T]
-        table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
         exact = expected_discounted_return(P, R, table, model.initial, GAMMA, n)  # [T]
         return {
             "test_return": test_return.tolist(),
@@ -179,9 +186,8 @@ def run_chunk(chunk: harness.Chunk) -> dict:
         keep_reward_free=False,  # T·Z·K·ΣM reward-free episodes are not needed afterwards
         device=args.device,
     )
-    first = api.initial_policy().with_streams(  # pi_1, with streams of its own
-        [torch.Generator().manual_seed(s) for s in api.block_seeds(0, "evaluation")]
-    )
+    # pi_1, with streams of its own
+    first = api.initial_policy().with_streams(CounterStreams(api.block_seeds(0, "evaluation")))
     return harness.run_iterations(chunk, api, initial=evaluate(first))  # pi_1: iteration 0
 
 

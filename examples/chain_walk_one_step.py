@@ -67,6 +67,7 @@ import scipy.stats
 import torch
 from tqdm import tqdm
 
+from counter_rng import CounterStreams, derive_keys
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv, deterministic_policy_probs
 from envs.chain_walk.exact import exact_psi, state_action_occupancy, true_generalisation_error
 from torch_api.basis import GaussianActionBasis
@@ -76,8 +77,11 @@ from torch_api.policies import TabularPolicy
 from torch_api.psi import PsiHat
 from torch_api.selector import j_values
 from torch_api.solve import weighted_ridge
+from torch_api.streams import trial_seeds_of
 
 BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # eq. 51-53, 10-letter readings
+# the roles of a trial's streams: reward-free walks and sampling, rewarded walks and sampling
+_ROLE_FREE_ENV, _ROLE_FREE_POLICY, _ROLE_REWARDED_ENV, _ROLE_REWARDED_POLICY = 1, 2, 3, 4
 
 
 def state_index(obs: torch.Tensor) -> torch.Tensor:
@@ -95,10 +99,13 @@ def row_tables(tables: torch.Tensor, lead: tuple[int, ...]) -> torch.Tensor:
     return tables.reshape(shape).expand(*lead, *tables.shape[-2:]).reshape(-1, *tables.shape[-2:])
 
 
-def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> dict:
+def run_policy(args: Args, base: str, seed: int) -> dict:
     """All trials for one evaluation policy; returns J' and Ḡ ``[T, K]`` (on the CPU).
 
     Everything else lives on ``args.device``: the walks, the policies' tables and the algebra.
+    Trial t has the key ``trial_seeds_of(seed, [t])``; its walks and its samplers draw from
+    streams derived from it (one role each), so trial t's numbers are those of a run of trial t
+    alone, whatever ``--trials`` is.
     """
     t, z, k, m, n = args.trials, args.repeats, args.candidates, args.episodes, args.steps
     device = torch.device(args.device)
@@ -109,10 +116,18 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     eps = torch.arange(1, k + 1, dtype=torch.float64) / k
     cand_tables = deterministic_policy_probs(base, eps).to(device)  # [K, S, A]
 
+    keys = torch.tensor(trial_seeds_of(seed, range(t)))  # one key per trial
+
+    def streams(role: int) -> CounterStreams:  # one stream per trial of one role
+        return CounterStreams(derive_keys(keys, role))
+
     # Reward-free data: [T, Z, K, M] chains, candidate k on its rows (Algorithm 2, steps 2-5).
-    env = ChainWalkEnv(batch_size=t * z * k * m, seed=seed, device=device)
+    env = ChainWalkEnv(batch_size=t * z * k * m, device=device)
+    env.set_block_seeds(derive_keys(keys, _ROLE_FREE_ENV))
     sampler = TabularPolicy(
-        table=row_tables(cand_tables, (t, z, k, m)), state_index=state_index, generator=generator
+        table=row_tables(cand_tables, (t, z, k, m)),
+        state_index=state_index,
+        streams=streams(_ROLE_FREE_POLICY),
     )
     # one table per environment row: the policy's "trials" are the rows, one episode each
     free = collect_episodes(env, sampler, num_episodes=1, num_steps=n, rewarded=False)
@@ -120,9 +135,12 @@ def run_policy(args: Args, base: str, generator: torch.Generator, seed: int) -> 
     j_prime = j_all.mean(1)
 
     # Rewarded data: one fresh set of M episodes per trial and candidate; θ_k and its Ḡ_k.
-    env = ChainWalkEnv(batch_size=t * k * m, seed=seed + 1, device=device)
+    env = ChainWalkEnv(batch_size=t * k * m, device=device)
+    env.set_block_seeds(derive_keys(keys, _ROLE_REWARDED_ENV))
     sampler = TabularPolicy(
-        table=row_tables(cand_tables, (t, k, m)), state_index=state_index, generator=generator
+        table=row_tables(cand_tables, (t, k, m)),
+        state_index=state_index,
+        streams=streams(_ROLE_REWARDED_POLICY),
     )
     bought = collect_episodes(env, sampler, num_episodes=1, num_steps=n, rewarded=True)
     design = build_design(bought.reshape(t, k, m, n), evaluation, psi)
@@ -242,11 +260,10 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    generator = torch.Generator().manual_seed(args.seed)
     started = time.perf_counter()
     results = {}
     for i, base in enumerate(tqdm(BASE_POLICIES, desc="evaluation policies")):
-        res = run_policy(args, base, generator, seed=args.seed * 1000 + 10 * i)
+        res = run_policy(args, base, seed=args.seed * 1000 + 10 * i)
         results[base] = {
             "j_prime": res["j_prime"].tolist(),
             "g_true": res["g_true"].tolist(),

@@ -127,6 +127,7 @@ import torch
 from _figures import steps_balanced
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv
 
+from counter_rng import CounterStreams, derive_keys
 from torch_api.basis import GaussianActionBasis
 from torch_api.data import REWARD_KEY, collect_episodes
 from torch_api.policies import LinearQPolicy
@@ -135,6 +136,7 @@ ENV_ID = "CartPole-v1"
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
 X_LIMIT, ANGLE_LIMIT = 2.4, 12 * 2 * math.pi / 360  # CartPole's termination limits (m, rad)
 MEASURES = ("steps_balanced", "steps_balanced_greedy")
+_ROLE_TEST, _ROLE_TEST_GREEDY = 1, 2  # the test policies' streams, derived from pi_{l+1}'s
 
 
 def make_env(batch: int) -> TransformedEnv:
@@ -189,18 +191,23 @@ def check_episodes(episodes) -> dict:
 
 
 def make_evaluator(args: Args):
-    """The ``evaluate`` callback: mean steps balanced by pi_{l+1} (ε-greedy and greedy)."""
+    """The ``evaluate`` callback: mean steps balanced by pi_{l+1} (ε-greedy and greedy).
+
+    The policy comes with one sampling stream per trial (from ``api.block_seeds(l,
+    "evaluation")``); the test policies draw from streams derived from those, and the test
+    env's CartPole row ``r`` is seeded ``seed + r`` (Gymnasium's vector seeding), so trial t's
+    test episodes do not depend on how many trials run beside it.
+    """
     trials, m, n = args.trials, args.test_episodes, args.test_steps
     env = make_env(trials * m)
-    generator = torch.Generator().manual_seed(args.seed)
 
-    def balanced(policy: LinearQPolicy, epsilon) -> torch.Tensor:
+    def balanced(policy: LinearQPolicy, epsilon, role: int) -> torch.Tensor:
         tester = LinearQPolicy(
             basis=policy.basis,
             theta=policy.theta,
             epsilon=epsilon,
             tie_break=policy.tie_break,
-            generator=generator,
+            streams=CounterStreams(derive_keys(policy.counter_streams.keys, role)),
         )
         episodes = collect_episodes(env, tester, num_episodes=m, num_steps=n, rewarded=True)
         return (episodes[REWARD_KEY] * episodes["mask"]).sum(-1).double().mean(-1)  # [T]
@@ -208,10 +215,9 @@ def make_evaluator(args: Args):
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
         if seed is not None:  # the same test noise for AL and PL at iteration l
             env.set_seed(int(seed))
-            generator.manual_seed(int(seed))
         return {
-            "steps_balanced": balanced(policy, policy.epsilon).tolist(),
-            "steps_balanced_greedy": balanced(policy, 0.0).tolist(),
+            "steps_balanced": balanced(policy, policy.epsilon, _ROLE_TEST).tolist(),
+            "steps_balanced_greedy": balanced(policy, 0.0, _ROLE_TEST_GREEDY).tolist(),
         }
 
     return evaluate
@@ -236,7 +242,8 @@ def run_chunk(chunk: harness.Chunk) -> dict:
         evaluate=evaluate,
         keep_reward_free=False,
     )
-    initial = evaluate(api.initial_policy(), args.seed + 1)  # pi_1: iteration 0
+    first = api.initial_policy().with_streams(CounterStreams(api.block_seeds(0, "evaluation")))
+    initial = evaluate(first, args.seed + 1)  # pi_1: iteration 0
     run = harness.run_iterations(chunk, api, initial=initial)
     return run | {"data_check": check_episodes(api.rewarded.episodes())}
 

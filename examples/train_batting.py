@@ -144,11 +144,12 @@ from _batting_basis import make_basis
 from _figures import figure10
 from _physics_audit import PhysicsAudit
 
+from counter_rng import derive_keys
 from envs.batting import MAX_STEPS, BattingEnv
 from torch_api.data import REWARD_KEY, collect_episodes
 from torch_api.dispatch import threads_per_worker
-from torch_api.iteration import derive_seed
 from torch_api.policies import LinearQPolicy
+from torch_api.streams import STREAMS
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 GAMMA = 1.0  # discount γ
@@ -181,9 +182,8 @@ def make_evaluator(trials: int, make_env):
         nonlocal env
         if env is None:
             env = make_env(batch_size=trials * TEST_EPISODES, seed=seed)
-        env.set_block_seeds(
-            [derive_seed(g.initial_seed(), 0, "evaluation") for g in policy.block_generators]
-        )
+        keys = policy.counter_streams.keys  # one stream per trial
+        env.set_block_seeds(derive_keys(keys, 0, STREAMS["evaluation"]))
         episodes = collect_episodes(
             env, policy, num_episodes=TEST_EPISODES, num_steps=MAX_STEPS, rewarded=True
         )  # [T, 20, N]

@@ -335,7 +335,7 @@ def test_block_seeds_give_each_block_the_stream_of_a_lone_env():
         alone.set_block_seeds([seed])
         assert torch.equal(noise[2 * block : 2 * block + 2], alone.sample_noise(2))
     batched.set_seed(5)  # back to one stream
-    assert batched.streams.block_rngs is None
+    assert batched.streams.blocks is None
     with pytest.raises(ValueError, match="equal blocks"):
         batched.set_block_seeds([1, 2, 3, 4])
 

@@ -4,6 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from counter_rng import CounterStreams
 from torch_api.basis import GaussianActionBasis
 from torch_api.policies import (
     LinearQPolicy,
@@ -159,22 +160,26 @@ def test_tabular_policy_and_trial_major_rows():
 
 
 def test_sample_actions_draws_from_the_streams_it_is_given():
-    """One generator: the inverse CDF of its uniforms; one generator per block of rows: block
-    b's rows drawn from stream b alone, as if each block were sampled by itself."""
+    """One generator: the inverse CDF of its uniforms; counter-based streams, one per block of
+    rows: block b's rows drawn from stream b alone, as if each block were sampled by itself,
+    the inverse CDF of the documented uniforms."""
     probs = torch.tensor([[0.2, 0.8], [0.5, 0.5], [0.9, 0.1]] * 2, dtype=torch.float64)
     u = torch.rand(6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     expected = (u > probs[:, 0]).long()
     assert torch.equal(sample_actions(probs, torch.Generator().manual_seed(0)), expected)
-    blocks = sample_actions(probs, [torch.Generator().manual_seed(s) for s in (1, 2, 3)])
+    blocks = sample_actions(probs, CounterStreams([1, 2, 3]))
     alone = [
-        sample_actions(probs[2 * b : 2 * b + 2], torch.Generator().manual_seed(s))
-        for b, s in enumerate((1, 2, 3))
+        sample_actions(probs[2 * b : 2 * b + 2], CounterStreams(s)) for b, s in enumerate((1, 2, 3))
     ]
     assert torch.equal(blocks, torch.cat(alone))
+    u = CounterStreams([1, 2, 3]).uniform((6,))
+    assert torch.equal(blocks, (u > probs[:, 0]).long())
     with pytest.raises(ValueError, match="6 rows do not split into 4 equal blocks"):
-        sample_actions(probs, [torch.Generator() for _ in range(4)])
+        sample_actions(probs, CounterStreams([1, 2, 3, 4]))
     with pytest.raises(ValueError, match="streams must be"):
         sample_actions(probs, 3)
+    with pytest.raises(ValueError, match="pass counter_rng.CounterStreams"):
+        sample_actions(probs, [torch.Generator() for _ in range(3)])
 
 
 def test_streams_are_fixed_when_a_policy_is_made():
@@ -185,15 +190,15 @@ def test_streams_are_fixed_when_a_policy_is_made():
     theta = torch.stack([torch.linspace(-1, 1, 8), torch.linspace(1, -1, 8)])  # two trials
     policy = LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.5)
     with pytest.raises(AttributeError):
-        policy.block_generators = [torch.Generator(), torch.Generator()]
+        policy.counter_streams = CounterStreams([1, 2])
     with pytest.raises(AttributeError):
         policy.generator = torch.Generator()
-    streams = [torch.Generator().manual_seed(s) for s in (1, 2)]
+    streams = CounterStreams([1, 2])
     seeded = policy.with_streams(streams)
-    assert policy.streams is None and seeded.block_generators == tuple(streams)
+    assert policy.streams is None and seeded.counter_streams is streams
     seeded.to(torch.float32)  # a copy's registries are its own: the original keeps float64 θ
     assert policy.theta.dtype == torch.float64 and seeded.theta.dtype == torch.float32
-    assert seeded.trial_slice(slice(1, 2)).block_generators == (streams[1],)
+    assert seeded.trial_slice(slice(1, 2)).counter_streams.keys.tolist() == [2]
     assert seeded.with_rule(epsilon=0.2).streams == seeded.to_device("cpu").streams
     with pytest.raises(ValueError, match="streams must be"):
         policy.with_streams([1, 2])
@@ -202,8 +207,8 @@ def test_streams_are_fixed_when_a_policy_is_made():
         env = ChainWalkEnv(batch_size=4, seed=0)
         return env.rollout(5, policy=policy, break_when_any_done=False)
 
-    first = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
-    again = rollout(policy.with_streams([torch.Generator().manual_seed(s) for s in (1, 2)]))
+    first = rollout(policy.with_streams(CounterStreams([1, 2])))
+    again = rollout(policy.with_streams(CounterStreams([1, 2])))
     assert torch.equal(first["action"], again["action"])
 
 

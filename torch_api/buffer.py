@@ -51,13 +51,12 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
         raise ValueError("reward-free episodes must not carry ('next', 'reward')")
     mask = episodes["mask"]
     for key in ("observation", ("next", "observation")):
-        values = episodes[key][mask]
-        if not torch.isfinite(values).all():
+        if _masked_any(~torch.isfinite(episodes[key]), mask):
             raise ValueError(f"episodes[{key!r}] contains NaN or inf")
     if has_reward:
-        reward = episodes[REWARD_KEY][mask]
-        if not torch.isfinite(reward).all():
-            bad = reward[~torch.isfinite(reward)][0].item()
+        reward = episodes[REWARD_KEY]
+        if _masked_any(~torch.isfinite(reward), mask):
+            bad = reward[mask][~torch.isfinite(reward[mask])][0].item()
             raise ValueError(f"rewards must be finite, got {bad}")
     action = episodes["action"]
     if action.shape != episodes.shape:
@@ -66,10 +65,11 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
             f"{tuple(action.shape)} (convert TorchRL data with torch_api.data.as_episodes)"
         )
     if SAMPLE_PROBS in keys:
-        probs = episodes[SAMPLE_PROBS][mask]
+        probs = episodes[SAMPLE_PROBS]
         if probs.numel():
-            off = (probs.sum(-1) - 1).abs().max().item()
-            if not off <= 1e-6 or (probs < 0).any() or not torch.isfinite(probs).all():
+            off = torch.where(mask, (probs.sum(-1) - 1).abs(), 0.0).max().item()
+            bad = (probs < 0) | ~torch.isfinite(probs)
+            if not off <= 1e-6 or _masked_any(bad, mask):
                 raise ValueError(
                     f"sample_probs rows must be probabilities summing to 1 (one is off by "
                     f"{off:.3g})"
@@ -78,17 +78,26 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
         if action.numel() and (action.min() < 0 or action.max() >= num_actions):
             raise ValueError(f"action indices must lie in [0, {num_actions})")
     else:
-        log_prob = episodes[SAMPLE_LOG_PROB][mask]
-        if torch.isnan(log_prob).any() or (log_prob > 1e-6).any():
+        log_prob = episodes[SAMPLE_LOG_PROB]
+        if _masked_any(torch.isnan(log_prob) | (log_prob > 1e-6), mask):
             raise ValueError("sample_log_prob must hold log-probabilities (<= 0, not NaN)")
         if action.numel() and action.min() < 0:
             raise ValueError(f"action indices must be >= 0, got {int(action.min())}")
     taken = taken_sample_probs(episodes)
-    if (taken[mask] <= 0).any():
+    if _masked_any(taken <= 0, mask):
         raise ValueError(
             "a taken action has recorded sampling probability 0: the episode could not have "
             "been collected by the policy it is tagged with"
         )
+
+
+def _masked_any(flags: torch.Tensor, mask: torch.Tensor) -> bool:
+    """Whether any flag ``[..., M, N, *rest]`` is set at a step the mask ``[..., M, N]`` keeps
+    (a reduction, not a boolean-index copy of the data)."""
+    if not flags.numel():
+        return False
+    flags = flags.reshape(*mask.shape, -1).any(-1) if flags.ndim > mask.ndim else flags
+    return bool((flags & mask).any())
 
 
 def cat_episodes(parts: list[TensorDictBase]) -> TensorDictBase:

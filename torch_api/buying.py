@@ -118,9 +118,9 @@ class RewardBuying:
         if reseed:
             self._seed_slice(l_now, episodes[0], rows)
         streams = (  # the policy's sampling streams, fresh: the iteration's or the slice's
-            self.streams.slice_generators(l_now, episodes[0], "policy")
+            self.streams.slice_sampling(l_now, episodes[0], "policy")
             if reseed
-            else self.streams.generators(l_now, "policy")
+            else self.streams.sampling(l_now, "policy")
         )
         selection = self._selection
         chosen = selection["chosen"]

@@ -48,8 +48,8 @@ class PolicyStack(ActionProbsPolicy):
     Args:
         policies: K policies with ``action_probs``.
         episodes_per_policy: M, consecutive rows per policy.
-        generator: random stream for sampling (or ``streams=``: one generator per block of
-            rows, e.g. per trial; see :func:`~torch_api.policy_base.sample_actions`).
+        generator: random stream for sampling (or ``streams=``: counter-based streams, one per
+            block of rows, e.g. per trial; see :func:`~torch_api.policy_base.sample_actions`).
     """
 
     def __init__(self, policies: Sequence, *, episodes_per_policy: int, generator=None, **io):
@@ -82,7 +82,7 @@ class PolicyStack(ActionProbsPolicy):
 def _stack(candidates: Sequence, m: int, generator) -> PolicyStack:
     """The candidates as one policy over ``[..., K, M]`` rows, drawing from the first
     candidate's per-trial streams, else from ``generator`` or the first candidate's stream."""
-    blocks = candidates[0].block_generators  # one stream per trial, else one for all
+    blocks = candidates[0].counter_streams  # one stream per trial (or one for all)
     streams = blocks if blocks is not None else generator or candidates[0].generator
     return PolicyStack(candidates, episodes_per_policy=m, streams=streams)
 

@@ -171,7 +171,7 @@ class CandidatePolicies:
         """The candidates drawing from the reward-free streams of the coming iteration (one
         for all K, shared), not from pi_l's (which the rewarded episodes use): AL's selection
         then leaves the rewarded draws as PL's."""
-        streams = self.streams.generators(self.iteration + 1, "reward_free_policy")
+        streams = self.streams.sampling(self.iteration + 1, "reward_free_policy")
         return [candidate.with_streams(streams) for candidate in self.candidates()]
 
     def block_seeds(self, iteration: int, stream: str) -> list[int]:
@@ -185,4 +185,4 @@ class CandidatePolicies:
         uninterrupted one would.
         """
         seed = self.streams.run_seed(iteration, "evaluation")
-        return self.policy.with_streams(self.streams.generators(iteration, "evaluation")), seed
+        return self.policy.with_streams(self.streams.sampling(iteration, "evaluation")), seed

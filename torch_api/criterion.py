@@ -26,6 +26,7 @@ from tensordict import TensorDictBase
 
 from torch_api.design import build_design
 from torch_api.episodes import as_episodes, joinable
+from torch_api.grouped_design import group_sums, grouped_design
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
 
@@ -167,8 +168,10 @@ def pooled_moments(
                 *prev.shape[:own_lead], *[1] * (len(lead) - own_lead), *prev.shape[-2:]
             )
             pieces.append(prev.expand(*lead, *prev.shape[-2:]).clone())
-        design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
         split = num_candidates * num_episodes * num_steps
+        if psi.mode == "grouped":  # one psi_hat row per (s, a): the moments are group sums
+            return _grouped_moments(torch.cat(pieces, dim=-2), policy, psi, split, num_candidates)
+        design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
 
         def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
             return t.narrow(len(lead), 0, split).reshape(
@@ -184,19 +187,51 @@ def pooled_moments(
                 w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
                 num_samples=design.num_samples - n_own.sum(-1),
             )
-    # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
-    # D̄_0 is their sum, with no pass of its own.
+    return _normalised(*_moments(own_x, own_w, n_own, shared, len(lead)))
+
+
+def _moments(own_x, own_w, n_own, shared, lead_dims: int):
+    """Unnormalised moments of each candidate's own rows and of the shared earlier rows."""
     a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
     c_own = weighted_moment(own_x, own_w.pow(2))
     a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
     n_shared = n_own.new_zeros(())
     if shared is not None:
-        stretch = [1] * (len(lead) + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
+        stretch = [1] * (lead_dims + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
         a_shared = weighted_moment(shared.x, shared.w)
         a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
         c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
         n_shared = shared.num_samples.to(torch.float64)
         n_shared = n_shared.reshape(*n_shared.shape, *stretch)
+    return a_own, c_own, n_own, a_shared, c_shared, n_shared
+
+
+def _grouped_moments(pool, policy, psi: PsiHat, split: int, num_candidates: int):
+    """The pooled moments of grouped psi_hat from group sums (:mod:`torch_api.grouped_design`):
+    ``Σ_i w_i x_i x_iᵀ = Σ_g (Σ_{i∈g} w_i) x_g x_gᵀ``; the first ``split`` samples of each
+    pool ``[..., K·M + M', N]`` are the K candidates' (equal shares), the rest the earlier sets."""
+    design = grouped_design(pool, policy, psi)
+    x, width = design.x, design.x.shape[-2]
+    lead = x.shape[:-2]
+
+    def moment(weights: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
+        sums = group_sums(weights, group, width)  # [..., (K,) G]
+        rows = x.unsqueeze(-3) if sums.ndim > x.ndim - 1 else x
+        return (rows * sums.unsqueeze(-1)).mT @ rows
+
+    own = (*lead, num_candidates, split // num_candidates)
+    own_w, own_group = design.w[..., :split].reshape(own), design.group[..., :split].reshape(own)
+    n_own = design.mask[..., :split].reshape(own).sum(-1).to(torch.float64)
+    a_own, c_own = moment(own_w, own_group), moment(own_w.pow(2), own_group)
+    shared_w, shared_group = design.w[..., split:], design.group[..., split:]
+    a_shared, c_shared = moment(shared_w, shared_group), moment(shared_w.pow(2), shared_group)
+    n_shared = design.mask[..., split:].sum(-1).to(torch.float64)
+    return _normalised(a_own, c_own, n_own, a_shared, c_shared, n_shared)
+
+
+def _normalised(a_own, c_own, n_own, a_shared, c_shared, n_shared) -> PooledMoments:
+    """A_k, C_k of each candidate's Π_k and Ũ of D̄_0 from the unnormalised moments (Ũ is
+    the sum of all of them, with no pass of its own)."""
     n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
     n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
     u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0

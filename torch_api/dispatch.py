@@ -33,7 +33,7 @@ from typing import Any, TypeVar
 import torch
 
 from torch_api.lifetime import die_with_parent
-from torch_api.streams import derive_seed
+from torch_api.streams import trial_seeds_of
 
 __all__ = ["BACKENDS", "run_chunks", "split_trials", "threads_per_worker", "trial_seeds"]
 
@@ -75,7 +75,7 @@ def trial_seeds(seed: int, trials: Sequence[int]) -> list[int]:
         >>> trial_seeds(0, range(3))[1:] == trial_seeds(0, [1, 2])
         True
     """
-    return [derive_seed(seed, t, "trial") for t in trials]
+    return trial_seeds_of(seed, trials)
 
 
 def threads_per_worker(workers: int) -> int:

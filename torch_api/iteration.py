@@ -21,7 +21,6 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -349,7 +348,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             theta=self.theta.tolist(),
         )
         if self.store is not None:
-            self.store.put_record(l_now, asdict(record))
+            # shallow: the store serialises the lists (asdict's deep copy cost seconds)
+            self.store.put_record(l_now, vars(record).copy())
             self._on_commit()
         self.iteration = l_now
         self.history.append(record)

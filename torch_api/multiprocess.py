@@ -9,10 +9,10 @@ whole blocks (trials): worker w gets trials ``a_w … b_w - 1``, the policy rest
 with the policy. Then the episodes equal those of one in-process ``env.rollout`` bit for bit.
 The workers draw from copies: the caller's generators are left as they were, and nothing
 replays the workers' draws. A caller therefore derives fresh streams for every collection, as
-the loop does (:meth:`~torch_api.streams.TrialStreams.generators`: one stream per (seed,
+the loop does (:meth:`~torch_api.streams.TrialStreams.sampling`: one stream per (seed,
 trial, iteration, role)).
 
-Without per-trial streams each worker gets a generator seeded from the policy's (one draw per
+Without per-trial streams each worker gets a stream keyed from the policy's (one draw per
 worker): reproducible, but not the numbers of one process.
 
 Worth it only when collection takes much longer than starting W processes (seconds: each
@@ -34,6 +34,7 @@ from torchrl.collectors import MultiSyncCollector
 from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
+from counter_rng import CounterStreams
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import validate_episodes
 from torch_api.episodes import _episodes_from_rollout
@@ -56,7 +57,7 @@ class _WorkerPolicy:
         torch.set_num_threads(1)
         policy = self.policy
         if self.seed is not None:
-            policy = policy.with_streams(torch.Generator().manual_seed(self.seed))
+            policy = policy.with_streams(CounterStreams(self.seed))
         # Declaring the outputs spares the collector a probing call of the policy at start-up,
         # which would draw from the streams and shift every action by one step.
         encoding = policy.action_encoding  # the env's, set by collect_episodes_in_workers
@@ -154,14 +155,18 @@ def collect_episodes_in_workers(
         raise ValueError(f"env_block_seeds must hold {blocks} seeds, got {len(env_block_seeds)}")
     per_block = rows // blocks
     parts = _split(blocks, min(num_workers, blocks))
-    streams = policy.block_generators
+    streams = policy.counter_streams
+    if streams is not None and len(streams) == 1 and blocks > 1:
+        streams = None  # one stream for all rows: each worker gets a stream spawned from it
     env_factories, policy_factories = [], []
     for w, part in enumerate(parts):
         piece = policy
         if blocks > 1 and (trial_dims or streams is not None):
             piece = policy.trial_slice(slice(part.start, part.stop))
         # one stream per trial: the worker draws from its trials' streams; else a fresh seed
-        seed = None if streams is not None else spawn_seed(policy.generator)
+        seed = (
+            None if streams is not None else spawn_seed(policy.counter_streams or policy.generator)
+        )
         policy_factories.append(_WorkerPolicy(piece, seed))
         block_seeds = None if env_block_seeds is None else env_block_seeds[part.start : part.stop]
         env_factories.append(_WorkerEnv(make_env, len(part) * per_block, env_seed + w, block_seeds))

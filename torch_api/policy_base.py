@@ -2,7 +2,9 @@
 
 A policy of this library is pure: it gives action probabilities of observations
 (``action_probs``). Drawing an action from them is a function of its own,
-:func:`sample_actions`, that takes its random streams as an argument. Where the policy must act
+:func:`sample_actions`, that takes its random streams as an argument: the library's own
+counter-based streams (:class:`counter_rng.CounterStreams`, one per trial), or what a TorchRL
+user passes (a ``torch.Generator``, or nothing: torch's global generator). Where the policy must act
 as a TorchRL module (``policy(td)`` in ``env.rollout`` or a ``Collector``), it draws from the
 streams it was made with (``with_streams`` gives a new policy with others; nothing sets them
 afterwards), writes the action in the env's encoding and records the whole distribution
@@ -22,27 +24,29 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from counter_rng import CounterStreams
 from torch_api.actions import ActionEncoding
 
 __all__ = ["ActionProbsPolicy", "Streams", "param_dims_of", "sample_actions"]
 
-Streams = torch.Generator | Sequence[torch.Generator] | None
-"""Random streams of sampling: torch's global generator (None), one generator, or one
-generator per equal, consecutive block of rows (e.g. one per trial)."""
+Streams = CounterStreams | torch.Generator | None
+"""Random streams of sampling: counter-based streams (one per equal, consecutive block of rows,
+e.g. one per trial; :class:`counter_rng.CounterStreams`), one ``torch.Generator``, or torch's
+global generator (None)."""
 
 
-def _check_streams(streams) -> torch.Generator | tuple[torch.Generator, ...] | None:
-    if streams is None or isinstance(streams, torch.Generator):
+def _check_streams(streams) -> Streams:
+    if streams is None or isinstance(streams, torch.Generator | CounterStreams):
         return streams
-    if (
-        isinstance(streams, Sequence)
-        and streams
-        and all(isinstance(g, torch.Generator) for g in streams)
-    ):
-        return tuple(streams)
+    hint = ""
+    if isinstance(streams, Sequence) and all(isinstance(g, torch.Generator) for g in streams):
+        hint = (
+            "; for one stream per block of rows (e.g. per trial) pass "
+            "counter_rng.CounterStreams(seeds), one seed per block"
+        )
     raise ValueError(
-        "streams must be None, a torch.Generator or a non-empty sequence of them (one per "
-        f"block of rows), got {streams!r}"
+        f"streams must be None, a torch.Generator or a counter_rng.CounterStreams, got "
+        f"{type(streams).__name__}{hint}"
     )
 
 
@@ -51,34 +55,26 @@ def sample_actions(probs: torch.Tensor, streams: Streams = None) -> torch.Tensor
 
     Args:
         probs: action probabilities ``[..., A]``.
-        streams: None (torch's global generator), one ``torch.Generator``, or one generator per
-            equal, consecutive block of rows (the leading dims flattened, trial-major): block
-            ``b`` is drawn from ``streams[b]`` alone, so a batch of T trials draws exactly what
-            T separate draws would.
+        streams: counter-based streams (the leading dims flattened, trial-major, split into
+            one equal, consecutive block per stream: block ``b`` is drawn from stream ``b``
+            alone, so a batch of T trials draws exactly what T separate draws would, in one
+            computation), one ``torch.Generator``, or None (torch's global generator).
 
     Example:
         >>> probs = torch.tensor([[0.5, 0.5]] * 4, dtype=torch.float64)
-        >>> streams = [torch.Generator().manual_seed(s) for s in (0, 1)]
-        >>> together = sample_actions(probs, streams)
-        >>> alone = [sample_actions(probs[:2], torch.Generator().manual_seed(s)) for s in (0, 1)]
+        >>> together = sample_actions(probs, CounterStreams([7, 8]))
+        >>> alone = [sample_actions(probs[:2], CounterStreams(s)) for s in (7, 8)]
         >>> torch.equal(together, torch.cat(alone))
         True
     """
     streams = _check_streams(streams)
     shape = probs.shape[:-1]
-    if streams is None or isinstance(streams, torch.Generator):
+    if isinstance(streams, CounterStreams):
+        uniform = streams.uniform(shape if len(shape) else (1,), device=probs.device)
+        uniform = uniform.reshape(shape)
+    else:
         device = "cpu" if streams is None else streams.device
         uniform = torch.rand(shape, generator=streams, dtype=torch.float64, device=device)
-    else:
-        rows, blocks = shape.numel(), len(streams)
-        if rows % blocks:
-            raise ValueError(f"{rows} rows do not split into {blocks} equal blocks")
-        uniform = torch.cat(
-            [
-                torch.rand(rows // blocks, generator=g, dtype=torch.float64, device=g.device)
-                for g in streams
-            ]
-        ).reshape(shape)
     uniform = uniform.to(probs.device)
     cdf = probs.cumsum(-1)
     return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
@@ -114,7 +110,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
     (:func:`sample_actions`) uses the streams the policy was made with (``generator=`` or
     ``streams=``, or :meth:`with_streams`), else torch's global generator (so
     ``torch.manual_seed`` governs an unseeded policy, as it does TorchRL's actors). The streams
-    are fixed when the policy is made: ``generator``, ``block_generators`` and ``streams`` are
+    are fixed when the policy is made: ``generator``, ``counter_streams`` and ``streams`` are
     read-only.
 
     A new policy family subclasses it and implements ``_action_probs`` (an extension point):
@@ -126,7 +122,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
         ...         probs = torch.zeros(*obs.shape[:-1], self.num_actions, dtype=torch.float64)
         ...         probs[..., -1] = 1.0
         ...         return probs
-        >>> policy = AlwaysRight(num_actions=2).with_streams(torch.Generator().manual_seed(0))
+        >>> policy = AlwaysRight(num_actions=2).with_streams(CounterStreams(0))
         >>> td = policy(TensorDict({"observation": torch.zeros(3, 1)}, batch_size=[3]))
         >>> td["action"].tolist(), td["sample_probs"].shape
         ([1, 1, 1], torch.Size([3, 2]))
@@ -158,23 +154,24 @@ class ActionProbsPolicy(TensorDictModuleBase):
         self.out_keys = [action_key, probs_key]
 
     @property
-    def streams(self) -> torch.Generator | tuple[torch.Generator, ...] | None:
+    def streams(self) -> Streams:
         """The random streams the policy samples from (see :data:`Streams`); read-only."""
         return self._streams
 
     @property
     def generator(self) -> torch.Generator | None:
-        """The policy's one random stream, or None (global generator, or one per block)."""
+        """The ``torch.Generator`` the policy samples from, or None."""
         return self._streams if isinstance(self._streams, torch.Generator) else None
 
     @property
-    def block_generators(self) -> tuple[torch.Generator, ...] | None:
-        """One random stream per equal, consecutive block of rows (e.g. per trial), or None."""
-        return None if isinstance(self._streams, torch.Generator) else self._streams
+    def counter_streams(self) -> CounterStreams | None:
+        """The counter-based streams the policy samples from (one per block of rows), or None."""
+        return self._streams if isinstance(self._streams, CounterStreams) else None
 
     def with_streams(self, streams: Streams) -> ActionProbsPolicy:
-        """The same policy (parameters, rule, encoding) sampling from ``streams``: one
-        generator, or one per block of rows (e.g. per trial); the original keeps its own."""
+        """The same policy (parameters, rule, encoding) sampling from ``streams`` (counter-based
+        streams, one per block of rows, e.g. per trial; or a ``torch.Generator``); the original
+        keeps its own."""
         other = self._copy()
         other._streams = _check_streams(streams)
         return other
@@ -191,8 +188,8 @@ class ActionProbsPolicy(TensorDictModuleBase):
         """The keyword arguments that make a copy of this policy with the same I/O and
         streams (of ``trials`` only, where the streams are one per trial)."""
         streams = self._streams
-        if trials is not None and isinstance(streams, tuple):
-            streams = streams[trials]
+        if trials is not None and isinstance(streams, CounterStreams) and len(streams) > 1:
+            streams = streams.select(trials)
         return {
             "one_hot": self.one_hot,
             "action_spec": self.action_encoding,

@@ -23,8 +23,9 @@ import inspect
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
-import numpy as np
 import torch
+
+from counter_rng import CounterStreams, derive_key, derive_keys
 
 __all__ = [
     "BlockSeeded",
@@ -34,6 +35,7 @@ __all__ = [
     "seed_env",
     "slice_seed",
     "spawn_seed",
+    "trial_seeds_of",
 ]
 
 
@@ -92,8 +94,10 @@ SLICE_STREAMS = {"policy": 6, "rewarded_env": 7}  # per-episode slices (rewarded
 
 
 def derive_seed(seed: int, iteration: int, stream: str) -> int:
-    """Independent seed of one random stream of one iteration (NumPy ``SeedSequence``).
+    """Independent seed (a 63-bit key) of one random stream of one iteration.
 
+    ``derive_key(seed, iteration, STREAMS[stream])`` (:func:`counter_rng.derive_key`: the
+    first two words of Philox4x32-10 keyed by the seed, counter ``(iteration, role, 0, tag)``).
     Every iteration re-seeds its streams from ``(seed, iteration, stream)``, so an interrupted
     run resumed from a checkpoint draws exactly the numbers an uninterrupted run would have.
     (``derive_seed(seed, t, "trial")`` is trial t's seed.)
@@ -103,27 +107,32 @@ def derive_seed(seed: int, iteration: int, stream: str) -> int:
         >>> a == derive_seed(0, 1, "policy") and a != b
         True
     """
-    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), STREAMS[stream]]
-    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+    return derive_key(seed, iteration, STREAMS[stream])
 
 
 def slice_seed(seed: int, iteration: int, episode: int, stream: str) -> int:
     """Seed of one stream of rewarded episode m (0-based) of iteration l, for runs that buy
     one episode at a time (``rewarded_slice="episode"``): a resume continues at any episode."""
-    entropy = [int(seed) & 0xFFFFFFFF, int(iteration), SLICE_STREAMS[stream], int(episode)]
-    return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> 1)
+    return derive_key(seed, iteration, SLICE_STREAMS[stream], episode)
 
 
-def spawn_seed(stream: torch.Generator | None) -> int:
-    """The seed of a new stream drawn from ``stream`` (one draw in ``[0, 2**62)``; None: torch's
-    global generator), e.g. a worker's where the policy has no stream per trial.
+def spawn_seed(stream: torch.Generator | CounterStreams | None) -> int:
+    """The seed of a new stream drawn from ``stream`` (one draw; None: torch's global
+    generator), e.g. a worker's where the policy has no stream per trial. A counter-based
+    stream of one key gives a key derived from its key and position, and moves on.
 
     Example:
         >>> a, b = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
         >>> spawn_seed(a) == spawn_seed(b) != spawn_seed(a)
         True
     """
+    if isinstance(stream, CounterStreams):
+        stream.calls += 1
+        return derive_key(int(stream.keys[0]), stream.calls - 1, len(stream), _SPAWN)
     return int(torch.randint(2**62, (), generator=stream))
+
+
+_SPAWN = 0x5350  # the derivation's last word for spawned keys
 
 
 class TrialStreams:
@@ -131,14 +140,16 @@ class TrialStreams:
 
     A run has a seed and, with T trials side by side, one seed per trial. Each iteration l
     derives, per role (``STREAMS``: the policy's sampling, the rewarded env, the reward-free
-    env, the reward-free sampling, the evaluation), one seed for the run (:func:`derive_seed`)
+    env, the reward-free sampling, the evaluation), one key for the run (:func:`derive_seed`)
     and one per trial (for per-trial streams: the policies' streams and the envs'
-    ``set_block_seeds``). A run that buys one episode at a time derives its streams from
-    (seed, trial, iteration, episode, role) instead (:func:`slice_seed`).
+    ``set_block_seeds``), all trials' keys in one vectorised computation. A run that buys one
+    episode at a time derives its streams from (seed, trial, iteration, episode, role) instead
+    (:func:`slice_seed`).
 
-    Sampling streams are derived fresh for every use (:meth:`generators`, given to a policy by
-    ``policy.with_streams``): nothing continues a stream from one use to the next, so a use in
-    worker processes leaves nothing to catch up in the parent.
+    Sampling streams are :class:`counter_rng.CounterStreams` made fresh for every use
+    (:meth:`sampling`, given to a policy by ``policy.with_streams``): nothing continues a stream
+    from one use to the next, so a use in worker processes leaves nothing to catch up in the
+    parent, and trial t's numbers do not depend on the other trials of the batch.
 
     Args:
         seed: the run's seed.
@@ -149,16 +160,17 @@ class TrialStreams:
         >>> seed, blocks = streams.env_seeds(1, "rewarded_env")
         >>> blocks == [derive_seed(11, 1, "rewarded_env"), derive_seed(22, 1, "rewarded_env")]
         True
-        >>> len(streams.generators(1, "policy"))  # one per trial
+        >>> len(streams.sampling(1, "policy"))  # one stream per trial
         2
-        >>> a, b = streams.generators(1, "policy"), streams.generators(1, "policy")
-        >>> torch.equal(torch.rand(3, generator=a[0]), torch.rand(3, generator=b[0]))
+        >>> a, b = streams.sampling(1, "policy"), streams.sampling(1, "policy")
+        >>> torch.equal(a.uniform((2, 3)), b.uniform((2, 3)))
         True
     """
 
     def __init__(self, *, seed: int, trial_seeds: Sequence[int] | None = None) -> None:
         self.seed = int(seed)
         self.trial_seeds = None if trial_seeds is None else [int(s) for s in trial_seeds]
+        self._trial_keys = None if trial_seeds is None else torch.tensor(self.trial_seeds)
 
     @classmethod
     def for_trials(
@@ -169,7 +181,7 @@ class TrialStreams:
         if num_trials is None and trial_seeds is not None:
             raise ValueError("trial_seeds needs num_trials")
         if num_trials is not None and trial_seeds is None:
-            trial_seeds = [derive_seed(seed, t, "trial") for t in range(num_trials)]
+            trial_seeds = trial_seeds_of(seed, range(num_trials))
         if trial_seeds is not None and len(trial_seeds) != num_trials:
             raise ValueError(
                 f"trial_seeds must hold num_trials = {num_trials} seeds, got {len(trial_seeds)}"
@@ -182,18 +194,16 @@ class TrialStreams:
 
     def block_seeds(self, iteration: int, role: str) -> list[int]:
         """Per-trial seeds of ``role`` in iteration l (runs with trials only)."""
-        if self.trial_seeds is None:
+        if self._trial_keys is None:
             raise ValueError("block_seeds needs a run with num_trials")
-        return [derive_seed(s, iteration, role) for s in self.trial_seeds]
+        return derive_keys(self._trial_keys, iteration, STREAMS[role]).tolist()
 
-    def generators(self, iteration: int, role: str) -> torch.Generator | list[torch.Generator]:
+    def sampling(self, iteration: int, role: str) -> CounterStreams:
         """Fresh sampling streams of ``role`` in iteration l, for ``policy.with_streams``: one
-        generator per trial in a run with trials, else one for the run."""
+        stream per trial in a run with trials, else one for the run."""
         return _fresh(*self.env_seeds(iteration, role))
 
-    def slice_generators(
-        self, iteration: int, episode: int, role: str
-    ) -> torch.Generator | list[torch.Generator]:
+    def slice_sampling(self, iteration: int, episode: int, role: str) -> CounterStreams:
         """Fresh sampling streams of ``role`` for rewarded episode m of iteration l."""
         return _fresh(*self.slice_seeds(iteration, episode, role))
 
@@ -205,13 +215,30 @@ class TrialStreams:
     def slice_seeds(self, iteration: int, episode: int, role: str) -> tuple[int, list | None]:
         """The run's and the per-trial seeds of ``role`` for rewarded episode m of l."""
         blocks = None
-        if self.trial_seeds is not None:
-            blocks = [slice_seed(s, iteration, episode, role) for s in self.trial_seeds]
+        if self._trial_keys is not None:
+            role_id = SLICE_STREAMS[role]
+            blocks = derive_keys(self._trial_keys, iteration, role_id, episode).tolist()
         return slice_seed(self.seed, iteration, episode, role), blocks
 
 
-def _fresh(seed: int, block_seeds: Sequence[int] | None) -> torch.Generator | list:
-    """New generators: one seeded with ``seed``, or one per block seed."""
-    if block_seeds is None:
-        return torch.Generator().manual_seed(seed)
-    return [torch.Generator().manual_seed(s) for s in block_seeds]
+def trial_seeds_of(seed: int, trials: Sequence[int]) -> list[int]:
+    """Trial t's seed ``derive_seed(seed, t, "trial")`` for each t, in one computation.
+
+    Example:
+        >>> trial_seeds_of(7, [0, 3]) == [derive_seed(7, 0, "trial"), derive_seed(7, 3, "trial")]
+        True
+    """
+    trials = torch.as_tensor(list(trials), dtype=torch.int64)
+    if not len(trials):
+        return []
+    return derive_keys(
+        torch.full_like(trials, int(seed) & _KEY_MASK), trials, STREAMS["trial"]
+    ).tolist()
+
+
+_KEY_MASK = (1 << 63) - 1
+
+
+def _fresh(seed: int, block_seeds: Sequence[int] | None) -> CounterStreams:
+    """New streams: one keyed by ``seed``, or one per block seed."""
+    return CounterStreams(seed if block_seeds is None else block_seeds)

@@ -37,7 +37,7 @@ class BattingEnv(EnvBase):
     A stateful env: the MuJoCo states live in a :class:`BattingSimulator` (see
     :mod:`envs.batting.impact` for the integration scheme and the look-ahead carry). Each step
     adds N(0, 3) noise (variance 3, std sqrt(3) N m) to the chosen torques, independently per
-    joint and env, drawn from the env's own ``torch.Generator`` (``set_seed``); equal seeds give
+    joint and env, drawn from the env's own counter-based streams (``set_seed``); equal seeds give
     equal episodes.
 
     Keys: ``"observation"`` float32 [E, 4] = (phi1, phi1_dot, phi2, phi2_dot) (rad, rad/s);
@@ -51,7 +51,7 @@ class BattingEnv(EnvBase):
         batch_size: number of parallel arms E (an int or a 1-d shape).
         max_steps: control steps per episode (10 in the paper).
         device: device of the env's tensors (CPU by default); physics runs on the CPU.
-        seed: seed of the noise generator; ``None`` draws a fresh one (not from global state).
+        seed: key of the noise stream; ``None`` draws a fresh one (not from global state).
         noise_variance: variance of the torque noise per joint ((N m)^2).
         end_at_hit: end the episode (``terminated``) at the step of the first ball-bat
             contact: the ball is gone, nothing after it can earn a reward. Off by default
@@ -143,10 +143,8 @@ class BattingEnv(EnvBase):
     def sample_noise(self, num: int) -> torch.Tensor:
         """Torque noise for ``num`` arms, float64 [num, 2] (N m), from the env's stream(s)."""
         if num != self.batch_size.numel():  # not a whole batch: the single stream
-            noise = torch.randn((num, 2), generator=self.streams.rng, dtype=torch.float64)
-        else:
-            noise = self.streams.draw(torch.randn, (num, 2), dtype=torch.float64)
-        return noise * self.noise_std
+            return self.streams.single.normal((num, 2)) * self.noise_std
+        return self.streams.normal((num, 2)) * self.noise_std
 
     # -- dynamics -----------------------------------------------------------------------------
 

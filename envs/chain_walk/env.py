@@ -40,7 +40,8 @@ class ChainWalkEnv(EnvBase):
     input's ``"observation"`` (the state number as float32 [E, 1]), so stepping a hand-built
     TensorDict from any state is allowed. With ``max_steps`` the step count travels in
     ``"step_count"`` (int64 [E, 1]). All randomness comes from the env's own
-    ``torch.Generator`` (``set_seed``); equal seeds give equal trajectories.
+    counter-based streams (``set_seed``, ``set_block_seeds``); equal seeds give equal
+    trajectories.
 
     Keys: ``"observation"`` float32 [E, 1]; ``"action"`` int64 [E] (``Categorical(2)``; a
     one-hot [E, 2] action is accepted too); ``"reward"`` float32 [E, 1]; ``"done"``,
@@ -54,7 +55,7 @@ class ChainWalkEnv(EnvBase):
         n_states: number of states S (10 in the paper).
         device: device of the env's tensors (CPU by default). The random numbers are drawn on
             the CPU whatever the device, so a seed gives the same walks on CPU and GPU.
-        seed: seed of the env's generator; ``None`` draws a fresh one (not from global state).
+        seed: key of the env's random stream; ``None`` draws a fresh one (not from global state).
 
     Example:
         >>> env = ChainWalkEnv(batch_size=4, seed=0)
@@ -128,7 +129,7 @@ class ChainWalkEnv(EnvBase):
     # -- seeding ------------------------------------------------------------------------------
 
     def _set_seed(self, seed: int | None) -> None:
-        self.streams.seed(seed)  # on the CPU whatever the env's device: see `_draw`
+        self.streams.seed(seed)  # drawn on the CPU whatever the env's device
 
     def set_block_seeds(self, seeds: Sequence[int]) -> None:
         """Give each of ``len(seeds)`` equal, consecutive blocks of rows its own random stream.
@@ -138,14 +139,6 @@ class ChainWalkEnv(EnvBase):
         run of many trials reproduces one-at-a-time runs. ``set_seed`` returns to one stream.
         """
         self.streams.set_block_seeds(seeds)
-
-    def _draw(self, sampler, shape: torch.Size, *args) -> torch.Tensor:
-        """``sampler(*args, shape, generator=...)`` from the env's stream(s), on its device.
-
-        The numbers are drawn on the CPU and moved to the env's device, so a seed gives the
-        same walks on every device (a CUDA generator would draw other numbers).
-        """
-        return self.streams.draw(sampler, shape, *args).to(self.device)
 
     # -- dynamics -----------------------------------------------------------------------------
 
@@ -161,7 +154,7 @@ class ChainWalkEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size
-        state = self._draw(torch.randint, torch.Size((*shape, 1)), 1, self.n_states + 1)
+        state = self.streams.integers(1, self.n_states + 1, (*shape, 1)).to(self.device)
         out = {"observation": state.to(torch.float32)}
         if self.max_steps is not None:
             out["step_count"] = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
@@ -202,7 +195,7 @@ class ChainWalkEnv(EnvBase):
             )
         action = self._action_indices(tensordict["action"])
         intended = 2 * action - 1  # 'L' -> -1, 'R' -> +1
-        success = self._draw(torch.rand, shape) < self.success_prob
+        success = self.streams.uniform(shape).to(self.device) < self.success_prob
         move = torch.where(success, intended, -intended)
         next_state = (state + move).clamp(1, self.n_states)
         out = {

@@ -1,0 +1,191 @@
+"""Figure 8's cost against the number of trials, next to its floors.
+
+For each T it runs ``examples/chain_walk_api.py --trials T`` (both schedules, AL and PL, the
+paper's sizes otherwise) in a fresh process and reports:
+
+- ``wall``: the whole command, start-up included; ``compute``: the experiment's own time (the
+  ``wall_seconds`` of its JSON); ``peak RSS`` of the process;
+- ``start-up``: a process that only imports what the CLI imports (measured once);
+- the floors of the same work in this process: ``rng`` — drawing the run's count of 32-bit
+  words from :class:`counter_rng.CounterStreams` in calls of the run's mean draw size (the
+  count comes from an instrumented in-process run of a few trials: every draw is per trial);
+  ``algebra`` — the J criterion of every AL iteration and the fit of every iteration, both
+  schedules, on episodes drawn beforehand (the arithmetic alone: no rollout, no Python loop
+  over steps).
+
+Run::
+
+    python benchmarks/bench_figure8.py                     # T = 100, 1000, 10000 (minutes)
+    python benchmarks/bench_figure8.py --trials 20 100     # a quick look
+    python benchmarks/bench_figure8.py --threads 2         # the CLI's and the floors' threads
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from _timing import machine_info
+
+ROOT = Path(__file__).resolve().parents[1]
+CLI = ROOT / "examples" / "chain_walk_api.py"
+SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3,) * 7}
+Z, K, N = 5, 4, 10  # repeats, candidates, steps (section 4.2)
+
+
+def run_cli(trials: int, threads: int, out: Path) -> dict:
+    """Wall time, the experiment's own time and the peak RSS of one run of the CLI."""
+    command = [sys.executable, str(CLI), "--trials", str(trials), "--threads", str(threads)]
+    command += ["--out-dir", str(out), "--overwrite"]
+    wrapper = (
+        "import resource, subprocess, sys, time\n"
+        "t = time.perf_counter()\n"
+        "code = subprocess.run(sys.argv[1:], capture_output=True).returncode\n"
+        "wall = time.perf_counter() - t\n"
+        "rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"
+        "print(code, wall, rss)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", wrapper, *command], capture_output=True, text=True)
+    code, wall, rss = done.stdout.split()
+    if int(code):
+        raise RuntimeError(f"{' '.join(command)} failed with exit status {code}")
+    payload = json.loads((out / "chain_walk_api.json").read_text())
+    return {"wall_s": float(wall), "compute_s": payload["wall_seconds"], "rss_mb": int(rss) / 1024}
+
+
+def startup_seconds(repeats: int = 3) -> float:
+    """Median time of a process that imports what the CLI imports, and nothing else."""
+    imports = (
+        f"import sys; sys.path.insert(0, {str(CLI.parent)!r}); import _harness, _figures, torch;"
+        "import envs.chain_walk, envs.chain_walk.exact, torch_api.policies"
+    )
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-c", imports], check=True)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def count_draws(trials: int) -> tuple[int, int]:
+    """32-bit words and draw calls of a whole run of ``trials`` trials (instrumented, in
+    process, quiet)."""
+    from counter_rng import streams as counter_streams
+
+    sys.path.insert(0, str(CLI.parent))
+    import chain_walk_api
+
+    words = calls = 0
+    original = counter_streams.CounterStreams._words
+
+    def counting(self, shape, device):
+        nonlocal words, calls
+        out = original(self, shape, device)
+        words, calls = words + out.numel(), calls + 1
+        return out
+
+    counter_streams.CounterStreams._words = counting
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            chain_walk_api.main(["--trials", str(trials), "--out-dir", out])
+    finally:
+        counter_streams.CounterStreams._words = original
+    return words, calls
+
+
+def rng_floor(words: int, calls: int) -> float:
+    """Seconds to draw ``words`` 32-bit words in ``calls`` calls of equal size."""
+    from counter_rng import CounterStreams
+
+    streams = CounterStreams(1)
+    size = max(1, words // calls)
+    start = time.perf_counter()
+    for _ in range(calls):
+        streams._words((size,), None)
+    return time.perf_counter() - start
+
+
+def algebra_floor(trials: int) -> float:
+    """Seconds of the J criterion (AL) and the fits (AL and PL) of both schedules on episodes
+    drawn beforehand, at the paper's sizes."""
+    from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
+    from torch_api.basis import GaussianActionBasis
+    from torch_api.collect import collect_episodes
+    from torch_api.criterion import j_values
+    from torch_api.fit import fit_theta
+    from torch_api.policies import LinearQPolicy
+    from torch_api.psi import PsiHat
+
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
+    psi = PsiHat(basis=basis, gamma=GAMMA, mode="grouped")
+    theta = torch.linspace(-1, 1, 12, dtype=torch.float64).expand(trials, 12).contiguous()
+    policy = LinearQPolicy(basis=basis, theta=theta, epsilon=0.3)
+
+    def draw(rows: int, rewarded: bool):
+        env = ChainWalkEnv(batch_size=trials * rows, seed=rows)
+        return collect_episodes(env, policy, num_episodes=rows, num_steps=N, rewarded=rewarded)
+
+    total = 0.0
+    for schedule in SCHEDULES.values():
+        for l, m in enumerate(schedule):
+            bought = sum(schedule[: l + 1])
+            rewarded = draw(bought, True)
+            free = draw(Z * K * m, False).reshape(trials, Z, K, m, N)
+            earlier = None if l == 0 else draw(sum(schedule[:l]), False)
+            start = time.perf_counter()
+            for _ in ("AL", "PL"):
+                fit_theta("brm", rewarded, policy, psi, basis, 1e-3)
+            j_values(free, earlier, policy, psi, 1e-3)
+            total += time.perf_counter() - start
+    return total
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, nargs="+", default=[100, 1000, 10000])
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=None, help="also write the table as JSON")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    print(machine_info())
+    startup = startup_seconds()
+    words, calls = count_draws(10)
+    rows = []
+    header = f"{'trials':>7} {'wall s':>8} {'compute s':>10} {'start-up s':>11} "
+    header += f"{'rng floor s':>12} {'algebra floor s':>16} {'peak RSS MB':>12}"
+    print(header)
+    for trials in args.trials:
+        with tempfile.TemporaryDirectory() as out:
+            run = run_cli(trials, args.threads, Path(out))
+        row = {
+            "trials": trials,
+            **run,
+            "startup_s": startup,
+            "rng_floor_s": rng_floor(words * trials // 10, calls),
+            "algebra_floor_s": algebra_floor(trials),
+        }
+        rows.append(row)
+        print(
+            f"{trials:>7} {row['wall_s']:>8.1f} {row['compute_s']:>10.1f} {startup:>11.1f} "
+            f"{row['rng_floor_s']:>12.2f} {row['algebra_floor_s']:>16.2f} {row['rss_mb']:>12.0f}"
+        )
+    if len(rows) > 1:
+        first, last = rows[0], rows[-1]
+        print(
+            f"wall ratio T={last['trials']} / T={first['trials']}: "
+            f"{last['wall_s'] / first['wall_s']:.2f}"
+        )
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"machine": machine_info(), "rows": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
