@@ -346,7 +346,7 @@ def test_a_full_disk_is_one_clear_line_and_keeps_what_was_stored(tmp_path):
     assert line[0].startswith(f"ERROR StoreWriteError cannot write the run {path}: ")
     assert len(RunStore.read(path).episodes[1]) == 3  # iteration 1 survives
     left = {p.name for p in tmp_path.iterdir()}  # the log holds committed rows: it stays
-    assert left <= {"run.db", "run.db-wal", "run.db-shm", "run.db.lock"}, left
+    assert left <= {"run.db", "run.db-wal", "run.db-shm", "run.db.lock", "run.db.commits"}, left
 
 
 def _flip(path: Path, offset: int, bit: int) -> None:
