@@ -212,6 +212,7 @@ def main(argv=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         run_seed=lambda seed, name: 1000 * seed + 100 * list(SCHEDULES).index(name),
         curves=(*MEASURES, "rewarded_transitions"),
+        files=("fig8_performance.png",),
     )
     return harness.run_experiment(args, experiment)
 

@@ -268,6 +268,7 @@ def main(argv=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         store_stem="{mode}",
         curves=MEASURES,
+        files=("performance.png",),
     )
     return harness.run_experiment(args, experiment)
 

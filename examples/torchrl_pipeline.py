@@ -156,10 +156,10 @@ def run_config(args: Args) -> dict:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    path = Path(args.out_dir) / STORE
-    if (why := harness.stored_runs_error([path], args.resume, args.overwrite)) is not None:
-        raise SystemExit(f"error: {why}")
-    with harness.durable_runs([path], path.parent):  # one line on a signal or a store error
+    out = Path(args.out_dir)
+    path, outputs = out / STORE, [out / "torchrl_pipeline.json"]
+    # one run writes the folder; one line on a signal or a store error
+    with harness.folder_held(out, [path], outputs, args), harness.durable_runs([path], path.parent):
         config = run_config(args)
         with RunStore(path, config=config, resume=args.resume, overwrite=args.overwrite) as store:
             return run(args, store)

@@ -352,6 +352,7 @@ def main(argv=None, on_checkpoint=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         store_stem="{schedule}_{mode}",
         curves=("performance", "hit_share", "rewarded_transitions"),
+        files=("fig10_performance.png",),
     )
     return harness.run_experiment(args, experiment, on_checkpoint=on_checkpoint)
 

@@ -61,9 +61,10 @@ def refuse_symlinks(path: Path) -> None:
             raise StoreWriteError(f"{p} is a symbolic link; a run is never written through one")
 
 
-def lock_run(path: Path) -> int:
+def lock_run(path: Path, what: str | None = None) -> int:
     """Take the run's writer lock (``flock`` on ``PATH.lock``) and return its file descriptor;
-    closing the descriptor (or the process ending) releases it.
+    closing the descriptor (or the process ending) releases it. ``what``: how the messages
+    name what is locked (default: ``path``).
 
     Raises:
         RunInUseError: another process holds it (its pid and host are named).
@@ -82,7 +83,7 @@ def lock_run(path: Path) -> int:
         holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "unknown"
         os.close(fd)
         raise RunInUseError(
-            f"{path} is in use by another process ({holder}); wait for it to end or "
+            f"{what or path} is in use by another process ({holder}); wait for it to end or "
             "stop it before resuming"
         ) from None
     os.ftruncate(fd, 0)
