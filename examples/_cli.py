@@ -1,8 +1,9 @@
 """Command-line parsing shared by the example scripts, light enough to run before torch loads.
 
 Every example reads top to bottom the same way: its docstring, a dataclass ``Args`` (one field
-per option, the string literal under a field is its ``--help`` text), a ``parse_args`` built on
-:func:`parse`, then::
+per option, declared with :func:`field`, whose ``help`` is its ``--help`` text: kept in the
+field's metadata, so ``--help`` needs no source code and a script runs however it is started,
+``python -m cProfile`` or a zipped install), a ``parse_args`` built on :func:`parse`, then::
 
     if __name__ == "__main__":
         parse_args()  # --help and bad flags answer here, before the heavy imports below
@@ -34,9 +35,7 @@ status 2).
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
-import inspect
 import os
 import re
 import shutil
@@ -68,13 +67,14 @@ def field(
     above: float | None = None,
     choices: Sequence[Any] | None = None,
     why: str = "",
+    help: str = "",
 ) -> Any:
-    """A dataclass field with its valid range or its choices.
+    """A dataclass field with its ``--help`` text and its valid range or its choices.
 
     ``low <= value <= high`` (either bound optional), ``value > above``, or ``value in
     choices``. ``why`` is appended to the error, e.g. ``"(a paired t-test needs two)"``.
     """
-    meta = {"low": low, "high": high, "above": above, "why": why}
+    meta = {"low": low, "high": high, "above": above, "why": why, "help": help}
     meta["choices"] = tuple(choices) if choices else None
     return dataclasses.field(default=default, metadata=meta)
 
@@ -84,10 +84,8 @@ class SelectionOptions:
     """The settings of the sampling-policy selection (Algorithm 2), in every script that selects.
     A script's ``Args`` extends it, declaring a field again where its default differs."""
 
-    repeats: int = field(5, low=1)
-    """Z, J-values averaged into J'"""
-    lam: float = field(1e-3, above=0)
-    """λ, ridge regularisation"""
+    repeats: int = field(5, low=1, help="Z, J-values averaged into J'")
+    lam: float = field(1e-3, above=0, help="λ, ridge regularisation")
 
 
 @dataclasses.dataclass
@@ -97,22 +95,36 @@ class RunOptions:
     Args(SelectionOptions, RunOptions)`` lists the run options first in ``--help``), declaring a
     field again where its default differs."""
 
-    trials: int = field(2, low=2, why="(a paired t-test needs two)")
-    """independent trials, all run as one batch"""
-    seed: int = 0
-    """master seed; AL and PL of a schedule share their seeds (a paired design)"""
-    out_dir: str = "results"
-    """where the JSON, the CSV, the figure and the stored runs go"""
-    resume: bool = False
-    """continue the runs stored in out_dir; completed runs are not recomputed (a missing run
-    starts fresh)"""
-    overwrite: bool = False
-    """discard the runs stored in out_dir and start over"""
-    threads: int = field(0, low=0)
-    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
-    logger: str = field("none", choices=LOGGERS)
-    """also write the learning curves (means over trials) with a TorchRL logger under
-    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
+    trials: int = field(
+        2, low=2, why="(a paired t-test needs two)", help="independent trials, all run as one batch"
+    )
+    seed: int = field(
+        0, help="master seed; AL and PL of a schedule share their seeds (a paired design)"
+    )
+    out_dir: str = field(
+        "results", help="where the JSON, the CSV, the figure and the stored runs go"
+    )
+    resume: bool = field(
+        False,
+        help=(
+            "continue the runs stored in out_dir; completed runs are not recomputed (a missing "
+            "run starts fresh)"
+        ),
+    )
+    overwrite: bool = field(False, help="discard the runs stored in out_dir and start over")
+    threads: int = field(
+        0,
+        low=0,
+        help="torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)",
+    )
+    logger: str = field(
+        "none",
+        choices=LOGGERS,
+        help=(
+            "also write the learning curves (means over trials) with a TorchRL logger under "
+            "<out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"
+        ),
+    )
 
 
 @dataclasses.dataclass
@@ -120,19 +132,28 @@ class ChunkOptions(RunOptions):
     """:class:`RunOptions` and where the runs go: the device, and chunks of trials on a
     backend (``torch_api.dispatch``)."""
 
-    device: str = "cpu"
-    """where the algebra runs (cpu, cuda or cuda:N)"""
-    backend: str = field("local", choices=BACKENDS)
-    """where the chunks of trials run: local (here, one after another), processes (a pool of
-    local worker processes) or ray"""
-    chunks: int = field(1, low=1)
-    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
-    workers: int = field(0, low=0)
-    """processes backend: worker processes (0: one per CPU core)"""
-    ray_address: str = ""
-    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
-    ray_cpus: int = field(0, low=0)
-    """CPUs of a local Ray instance (0: all)"""
+    device: str = field("cpu", help="where the algebra runs (cpu, cuda or cuda:N)")
+    backend: str = field(
+        "local",
+        choices=BACKENDS,
+        help=(
+            "where the chunks of trials run: local (here, one after another), processes (a pool "
+            "of local worker processes) or ray"
+        ),
+    )
+    chunks: int = field(
+        1,
+        low=1,
+        help=(
+            "C, chunks of trials per schedule and method (each one batched run; results "
+            "concatenated)"
+        ),
+    )
+    workers: int = field(0, low=0, help="processes backend: worker processes (0: one per CPU core)")
+    ray_address: str = field(
+        "", help="Ray cluster to join (e.g. auto); empty starts a local Ray instance"
+    )
+    ray_cpus: int = field(0, low=0, help="CPUs of a local Ray instance (0: all)")
 
 
 def run_options_error(args) -> str | None:
@@ -149,19 +170,9 @@ def run_options_error(args) -> str | None:
 
 
 def field_docs(cls) -> dict[str, str]:
-    """The string literal under each field of a dataclass and of its dataclass bases (for
-    --help); a field declared again in a subclass takes the subclass's text."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        body = ast.parse(inspect.getsource(klass)).body[0].body
-        docs |= {
-            a.target.id: " ".join(b.value.value.split())
-            for a, b in zip(body, body[1:], strict=False)
-            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
-        }
-    return docs
+    """The ``help`` of each field of a dataclass (for --help); a field declared again in a
+    subclass has the subclass's text."""
+    return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
