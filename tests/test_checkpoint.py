@@ -192,7 +192,8 @@ def test_env_parameters_are_part_of_the_settings(tmp_path):
 
 def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path):
     path = tmp_path / "run.db"
-    api = _api(path, mode="passive", lam=1e-300, env=_CountingChain)
+    api = _api(path, mode="passive", env=_CountingChain)
+    api.lam = 1e-300  # a fit that fails (such a λ is refused by the constructor)
     with pytest.raises(ValueError, match="not positive definite"):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
