@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import re
 import shutil
@@ -55,6 +56,16 @@ _LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 
 MIN_FREE_MB = 50
 """An output folder needs at least this much free space (MB) before a run starts."""
+
+MAX_THREADS = 1024
+"""``--threads`` above this is refused (torch would try to start them all)."""
+
+TINY_LAMBDA = 1e-10
+"""The smallest λ (``torch_api._checks.TINY_LAMBDA``; a test keeps them equal)."""
+
+BYTES_PER_TRANSITION = 1024
+"""What one stored or collected transition costs in memory, with the designs built from it (a
+generous bound, for :func:`memory_error`)."""
 
 _DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
@@ -85,7 +96,7 @@ class SelectionOptions:
     A script's ``Args`` extends it, declaring a field again where its default differs."""
 
     repeats: int = field(5, low=1, help="Z, J-values averaged into J'")
-    lam: float = field(1e-3, above=0, help="λ, ridge regularisation")
+    lam: float = field(1e-3, low=TINY_LAMBDA, help="λ, ridge regularisation")
 
 
 @dataclasses.dataclass
@@ -99,7 +110,10 @@ class RunOptions:
         2, low=2, why="(a paired t-test needs two)", help="independent trials, all run as one batch"
     )
     seed: int = field(
-        0, help="master seed; AL and PL of a schedule share their seeds (a paired design)"
+        0,
+        low=0,
+        high=2**63 - 1,
+        help="master seed; AL and PL of a schedule share their seeds (a paired design)",
     )
     out_dir: str = field(
         "results", help="where the JSON, the CSV, the figure and the stored runs go"
@@ -115,6 +129,7 @@ class RunOptions:
     threads: int = field(
         0,
         low=0,
+        high=MAX_THREADS,
         help="torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)",
     )
     logger: str = field(
@@ -234,11 +249,14 @@ def _metavar(f: dataclasses.Field) -> str:
 
 
 def range_error(cls, args) -> str | None:
-    """The first field of ``args`` outside its declared range or choices, as one line."""
+    """The first field of ``args`` outside its declared range or choices (or a number that is
+    not finite), as one line."""
     for f in dataclasses.fields(cls):
         value, meta = getattr(args, f.name), f.metadata
         flag = f"--{f.name.replace('_', '-')}"
         why = f" {meta['why']}" if meta.get("why") else ""
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"{flag} must be a finite number, got {value}"
         if meta.get("choices") and value not in meta["choices"]:
             options = ", ".join(map(str, meta["choices"]))
             return f"{flag} must be one of {options}{why}, got {value!r}"
@@ -297,6 +315,24 @@ def out_dir_error(
             f"{flag} {str(folder)!r} has {free_mb:.0f} MB free, a run needs at least {need_mb} MB"
         )
     return None
+
+
+def memory_error(transitions: float, flags: str) -> str | None:
+    """Why a run that holds ``transitions`` transitions at once would not fit in the memory
+    available here (:data:`BYTES_PER_TRANSITION` each), naming the ``flags`` that set it."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            kib = next(int(line.split()[1]) for line in meminfo if line.startswith("MemAvailable"))
+        available = kib * 1024
+    except (OSError, StopIteration, ValueError):
+        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    need = transitions * BYTES_PER_TRANSITION
+    if need <= available:
+        return None
+    return (
+        f"a run of these sizes holds about {transitions:.3g} transitions ({need / 2**30:.3g} GiB), "
+        f"more than the {available / 2**30:.1f} GiB of memory available: lower {flags}"
+    )
 
 
 def logger_error(kind: str) -> str | None:

@@ -20,7 +20,7 @@ class Args:
     """Command-line arguments of the reference numbers."""
 
     episodes: int = field(1000, low=1, help="noisy episodes of the uniformly random policy")
-    seed: int = field(0, help="seed of the torque noise and of the random actions")
+    seed: int = field(0, low=0, help="seed of the torque noise and of the random actions")
     out: str = field(
         "results/batting_reference.json",
         help="the JSON file the summary goes to (its folder is created)",

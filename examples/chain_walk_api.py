@@ -51,7 +51,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, SelectionOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, memory_error, parse
 
 
 @dataclass
@@ -99,8 +99,19 @@ class Args(SelectionOptions, ChunkOptions):
     )
 
 
+def size_error(args: Args) -> str | None:
+    """Whether the largest chunk's episodes fit in memory (checked before any work starts):
+    rewarded, reward-free (Z repeats of 3 candidates) and test transitions at once."""
+    trials = -(-args.trials // args.chunks)
+    bought = 5 * args.iterations * args.steps  # (at most 5 episodes an iteration)
+    free = args.repeats * 3 * bought
+    test = args.test_episodes * args.test_steps
+    flags = "--trials, --steps, --test-episodes or --test-steps (or raise --chunks)"
+    return memory_error(trials * (bought + free + test), flags)
+
+
 def parse_args(argv=None) -> Args:
-    return parse(Args, argv, __doc__)
+    return parse(Args, argv, __doc__, check=size_error)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ class Args(SelectionOptions):
     """Command-line arguments of the one-step experiment."""
 
     trials: int = field(100, low=1, help="independent trials (the paper: 100)")
-    seed: int = field(0, help="seed of the environment and the policies")
+    seed: int = field(0, low=0, help="seed of the environment and the policies")
     candidates: int = field(10, low=2, help="K, candidate k samples with ε = k / K")
     eval_epsilon: float = field(0.1, low=0.0, high=1.0, help="ε of the evaluation policies")
     episodes: int = field(10, low=1, help="M, episodes per data set")

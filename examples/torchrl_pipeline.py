@@ -46,6 +46,7 @@ class Args(SelectionOptions):
     repeats: int = field(2, low=1, help="Z, J-values averaged into J'")
     seed: int = field(
         0,
+        low=0,
         help=(
             "seed of the run: every iteration's draws (torch's generator, the environments' "
             "seeds) are derived from (seed, iteration)"

@@ -123,6 +123,31 @@ def test_the_shared_run_options_have_help_text():
         assert all(docs.values())
 
 
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [
+        ("--lam", "inf", "--lam must be a finite number, got inf"),
+        ("--lam", "1e-300", "--lam must be >= 1e-10, got 1e-300"),
+        ("--seed", "-1", "--seed must lie in 0..9223372036854775807, got -1"),
+        ("--threads", "100000", "--threads must lie in 0..1024, got 100000"),
+        ("--steps", str(10**8), "GiB of memory available: lower --trials, --steps"),
+    ],
+)
+def test_values_that_failed_late_are_one_line_exit_2_at_once(flag, value, message):
+    """Each was a traceback or a failure after seconds of work (``--lam 1e-300`` after the
+    rewards were stored; ``--steps 10**8`` no answer in a minute)."""
+    done, seconds = _run("chain_walk_api.py", flag, value)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert message in done.stderr.strip().splitlines()[-1], done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and seconds < HELP_SECONDS
+
+
+def test_the_smallest_lambda_is_the_librarys():
+    from torch_api import _checks
+
+    assert _cli.TINY_LAMBDA == _checks.TINY_LAMBDA
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_bad_value_is_one_line_naming_it_exit_2(script):
     flag, value, message = BAD_FLAG[script]

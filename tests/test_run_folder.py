@@ -67,3 +67,20 @@ def test_a_flagless_run_with_other_settings_never_replaces_the_folders_results(t
     assert f"results of a run are in the folder already ({tmp_path}/chain_walk_api.json" in err
     assert _files(tmp_path) == before
     assert json.loads((tmp_path / "chain_walk_api.json").read_text()) == payload
+
+
+def test_misplaced_output_paths_are_one_line_exit_2_before_any_run(tmp_path):
+    """``<out>/checkpoints`` a file, the CSV a folder: they were tracebacks (the second after
+    every reward of the experiment was bought)."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "checkpoints").write_text("not a folder")
+    (tmp_path / "b" / "chain_walk_api.csv").mkdir(parents=True)
+    for folder, message in [
+        ("a", "checkpoints is in the way: a file where the stored runs' folder goes"),
+        ("b", "chain_walk_api.csv is in the way: not a file, where the script writes one"),
+    ]:
+        proc = start_example("chain_walk_api.py", *TINY, "--out-dir", str(tmp_path / folder))
+        _, err = proc.communicate(timeout=240)
+        assert proc.returncode == 2, err[-2000:]
+        assert err.strip().splitlines() == [f"error: {tmp_path / folder}/{message}"]
+    assert not (tmp_path / "b" / "checkpoints").exists()  # nothing run, nothing stored
