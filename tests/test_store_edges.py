@@ -3,7 +3,8 @@ store is being created, a write-ahead log cut short or flipped after a real kill
 lands while a commit is open.
 
 Each child is a real process forked from the test (it has torch loaded already, as a run has),
-killed by a real SIGKILL or stopped by a real SIGTERM.
+killed by a real SIGKILL or stopped by a real SIGTERM; the attacks are those that
+``benchmarks/durability_attacks.py`` counts.
 """
 
 from __future__ import annotations
@@ -14,75 +15,22 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
-import torch
-from tensordict import TensorDict
 
 from torch_api.store import CorruptRunError, RunStore
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from _durable import Interrupted, raise_on_signals  # noqa: E402
-
-CONFIG = {"N": 1}
-
-
-def _in_child(body) -> int:
-    """Run ``body()`` in a forked process; its exit status (negative: the signal that ended it)."""
-    pid = os.fork()
-    if pid == 0:  # the child: never returns into pytest
-        code = 0
-        try:
-            body()
-        except Interrupted as interrupt:
-            code = 128 + interrupt.signum
-        except BaseException:  # noqa: BLE001
-            code = 3
-        os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    return os.waitstatus_to_exitcode(status)
-
-
-def _stop_at_statement(k: int, signum: int):
-    """A child body: create a store, sending itself ``signum`` as SQLite starts its k-th
-    statement (SIGTERM raises :class:`Interrupted` at the next bytecode, as in the examples)."""
-
-    def body() -> None:
-        real, seen, mask = sqlite3.connect, [0], []
-
-        class Connection(sqlite3.Connection):
-            def execute(self, *args):
-                try:
-                    return super().execute(*args)
-                finally:  # the signal sent while SQLite ran, taken as it returns (if unmasked)
-                    if mask:
-                        signal.pthread_sigmask(signal.SIG_SETMASK, mask.pop())
-
-        def connect(*args, **kwargs):
-            db = real(*args, factory=Connection, **kwargs)
-
-            def trace(sql):
-                seen[0] += 1
-                if seen[0] == k:  # (a handler run here, in the callback, would be swallowed)
-                    mask.append(signal.pthread_sigmask(signal.SIG_BLOCK, {signum}))
-                    os.kill(os.getpid(), signum)
-
-            db.set_trace_callback(trace)
-            return db
-
-        sqlite3.connect = connect
-        with raise_on_signals():
-            RunStore(PATH_OF_CHILD[0], config=CONFIG).close()
-        if seen[0] < k:
-            os._exit(10)  # k is past the last statement: creation is done
-
-    return body
-
-
-PATH_OF_CHILD: list[Path] = [Path()]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from durability_attacks import (  # noqa: E402  (the attacks, counted there)
+    CONFIG,
+    CREATED,
+    episodes,
+    in_child,
+    killed_writer,
+    signal_inside_a_commit,
+    stop_at_statement,
+)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM])
@@ -92,9 +40,9 @@ def test_a_stop_at_any_statement_of_store_creation_leaves_a_run_resume_takes(tmp
     readonly database" or "format None")."""
     refused = []
     for k in range(1, 60):
-        PATH_OF_CHILD[0] = path = tmp_path / f"k{k}" / "run.db"
-        code = _in_child(_stop_at_statement(k, signum))
-        if code == 10:
+        path = tmp_path / f"k{k}" / "run.db"
+        code = in_child(stop_at_statement(path, k, signum))
+        if code == CREATED:
             break
         assert code in (-signal.SIGKILL, 128 + signal.SIGTERM), code
         try:
@@ -107,27 +55,6 @@ def test_a_stop_at_any_statement_of_store_creation_leaves_a_run_resume_takes(tmp
         raise AssertionError("the creation never ended")
     assert k > 3, "the trace saw too few statements to test anything"
     assert refused == []
-
-
-def _episodes(m: int) -> dict[int, TensorDict]:
-    return {
-        m: TensorDict({"reward": torch.full((2, 5), float(m))}, batch_size=[2, 5]),
-    }
-
-
-def _killed_run(folder: Path, commits: int) -> Path:
-    """A store whose writer put ``commits`` slices and was SIGKILLed (its rows in the -wal)."""
-    path = folder / "run.db"
-
-    def body() -> None:
-        store = RunStore(path, config=CONFIG)
-        for m in range(commits):
-            store.put_episodes(1, _episodes(m))
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    assert _in_child(body) == -signal.SIGKILL
-    assert Path(f"{path}-wal").stat().st_size > 0
-    return path
 
 
 def _copy(path: Path, to: Path) -> Path:
@@ -152,8 +79,8 @@ def test_a_write_ahead_log_cut_short_after_a_kill_is_refused_never_silently(tmp_
     """The rows of a killed writer live in ``run.db-wal``; SQLite ends the log at its first
     frame that fails a checksum. Cut or flipped anywhere: every row back, or a refusal that
     says rows were lost (it dropped them, or discarded the whole run, without a word)."""
-    commits = 6
-    path = _killed_run(tmp_path / "killed", commits)
+    commits, path = 6, tmp_path / "killed" / "run.db"
+    killed_writer(path, commits)
     wal = Path(f"{path}-wal").read_bytes()
     outcomes = {}
     frame = 24 + 4096  # a frame: its 24-byte header, then one page
@@ -178,31 +105,14 @@ def test_a_signal_that_lands_while_a_commit_is_open_waits_for_the_commit(tmp_pat
     of them and its Python handler runs in the main thread at the next bytecode: inside the
     open transaction, which it rolled back (the slice was bought again)."""
     path = tmp_path / "run.db"
-
-    def body() -> None:
-        threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
-        store = RunStore(path, config=CONFIG)
-        real = RunStore._put
-
-        def put(db, table, key, value, free=None):
-            real(db, table, key, value, free)
-            if table == "record":
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.3)  # the signal is taken while the transaction is open
-
-        RunStore._put = staticmethod(put)
-        with raise_on_signals():
-            store.put_record(1, {"iteration": 1})
-            time.sleep(5)  # (never reached: the interrupt comes right after the commit)
-
-    assert _in_child(body) == 128 + signal.SIGTERM
+    assert signal_inside_a_commit(path) == 128 + signal.SIGTERM
     assert RunStore.read(path).records == {1: {"iteration": 1}}
 
 
 def _stored(folder: Path) -> Path:
     path = folder / "run.db"
     with RunStore(path, config=CONFIG) as store:
-        store.put_episodes(1, _episodes(0))
+        store.put_episodes(1, episodes(0))
         store.put_record(1, {"iteration": 1})
     return path
 
