@@ -3,8 +3,9 @@
 Every try is a real process (forked from this one, torch loaded as in a run) and real files:
 
 * ``creation``: SIGKILL, or SIGTERM turned into the examples' interrupt, as SQLite starts each
-  statement of a store's creation in turn, and a file-size limit (``ulimit -f``) that makes a
-  write of the creation fail; then ``resume=True`` must open the run (empty);
+  statement of a store's creation in turn; SIGKILL before each file-system step of it (open,
+  write, fsync, rename); a file-size limit (``ulimit -f``) that makes a write of the creation
+  fail; then ``resume=True`` must open the run (empty);
 * ``wal``: a writer SIGKILLed after 6 commits (its rows in ``run.db-wal``); the log cut at a
   random length or one random bit flipped in it; then ``resume=True`` must give every committed
   row back or refuse saying rows were lost;
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import json
 import os
 import random
 import resource
@@ -41,6 +43,7 @@ import torch  # noqa: E402
 from _durable import Interrupted, raise_on_signals  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
+from torch_api import store_files  # noqa: E402
 from torch_api.store import CorruptRunError, RunStore, StoreError  # noqa: E402
 
 CONFIG = {"N": 1}
@@ -104,6 +107,37 @@ def stop_at_statement(path: Path, k: int, signum: int):
     return body
 
 
+def kill_at_file_step(path: Path, k: int):
+    """A child's body: create a store at ``path``, SIGKILLed before the k-th call into ``os``
+    of :mod:`torch_api.store_files` (open, write, fsync, rename, ...); exits :data:`CREATED`
+    if the creation has fewer."""
+
+    class Steps:
+        def __init__(self) -> None:
+            self.seen = 0
+
+        def __getattr__(self, name):
+            attr = getattr(os, name)
+            if not callable(attr):
+                return attr
+
+            def step(*args, **kwargs):
+                self.seen += 1
+                if self.seen == k:
+                    os.kill(os.getpid(), signal.SIGKILL)
+                return attr(*args, **kwargs)
+
+            return step
+
+    def body() -> None:
+        steps = store_files.os = Steps()
+        RunStore(path, config=CONFIG).close()
+        if steps.seen < k:
+            os._exit(CREATED)
+
+    return body
+
+
 def killed_writer(path: Path, commits: int) -> None:
     """A store at ``path`` whose writer put ``commits`` slices and was SIGKILLed: its rows in
     ``PATH-wal``."""
@@ -157,6 +191,11 @@ def creation(folder: Path) -> collections.Counter:
             if in_child(stop_at_statement(path, k, signum)) == CREATED:
                 break
             outcomes[f"{signal.Signals(signum).name} at statement k: {resumes(path)}"] += 1
+    for k in range(1, 100):
+        path = folder / f"step-{k}" / "run.db"
+        if in_child(kill_at_file_step(path, k)) == CREATED:
+            break
+        outcomes[f"SIGKILL at file step k: {resumes(path)}"] += 1
     for limit in (0, 512, 4096, 8192, 12288, 16384, 32768):
         path = folder / f"fsize-{limit}" / "run.db"
 
@@ -217,9 +256,16 @@ def signals(folder: Path, tries: int, rng: random.Random) -> collections.Counter
         def loop(path=path, started=started):
             threading.Thread(target=time.sleep, args=(60,), daemon=True).start()
             store = RunStore(path, config=CONFIG)
-            with raise_on_signals(), open(started, "a", buffering=1) as log:
+            real, log = RunStore._put, open(started, "a", buffering=1)  # noqa: SIM115
+
+            def put(db, table, key, value, free=None):  # inside the open transaction
+                if table == "episode":
+                    log.write(f"{key[1]}\n")
+                real(db, table, key, value, free)
+
+            RunStore._put = staticmethod(put)
+            with raise_on_signals():
                 for m in range(10_000):
-                    log.write(f"{m}\n")
                     store.put_episodes(1, episodes(m))
 
         pid = os.fork()
@@ -237,7 +283,7 @@ def signals(folder: Path, tries: int, rng: random.Random) -> collections.Counter
         code = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
         begun = len(started.read_text().split())
         stored = RunStore.read(path).num_episodes
-        ok = code == 143 and stored == begun
+        ok = code == 143 and stored == begun  # every transaction that reached its row stands
         outcomes[f"at a random moment: {'every begun commit stands' if ok else 'LOST ONE'}"] += 1
     return outcomes
 
@@ -275,9 +321,12 @@ def main() -> None:
     parser.add_argument("--tries", type=int, default=200, help="WAL damages (signal tries / 4)")
     parser.add_argument("--cli", type=int, default=0, help="CLI SIGTERMs at store creation")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", default="", help="one attack: creation, wal, signal or cli")
+    parser.add_argument("--out", default="", help="also write the outcomes as JSON here")
     args = parser.parse_args()
     rng = random.Random(args.seed)
     torch.set_num_threads(1)
+    table = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         attacks = {"creation": lambda d: creation(d)}
@@ -286,12 +335,17 @@ def main() -> None:
         if args.cli:
             attacks["cli"] = lambda d: cli(d, args.cli)
         for name, attack in attacks.items():
+            if args.only and name != args.only:
+                continue
             (folder / name).mkdir()
             started = time.perf_counter()
             outcomes = attack(folder / name)
             print(f"\n{name} ({time.perf_counter() - started:.0f} s)")
             for outcome, count in sorted(outcomes.items()):
                 print(f"  {count:4d}  {outcome}")
+            table[name] = dict(sorted(outcomes.items()))
+    if args.out:
+        Path(args.out).write_text(json.dumps(table, indent=1))
 
 
 if __name__ == "__main__":

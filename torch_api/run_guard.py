@@ -55,7 +55,7 @@ def signals_held() -> Iterator[None]:
 
 def refuse_symlinks(path: Path) -> None:
     """Raise :class:`StoreWriteError` if the run's database or one of its files is a symlink."""
-    suffixes = ("-wal", "-shm", "-journal", ".lock", ".commits", ".new")
+    suffixes = ("-wal", "-shm", "-journal", ".lock", ".commits", ".commits.new", ".new")
     for p in (path, *(Path(f"{path}{s}") for s in suffixes)):
         if p.is_symlink():
             raise StoreWriteError(f"{p} is a symbolic link; a run is never written through one")

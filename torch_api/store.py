@@ -136,7 +136,8 @@ class RunStore:
             self._commits = stored.commits
         if overwrite or not held:
             try:
-                create_atomically(path, self._fill)
+                with signals_held():  # (an interrupt waits for the creation, as for a commit)
+                    create_atomically(path, self._fill)
             except (sqlite3.DatabaseError, OSError) as error:
                 raise self._write_error(error) from None
         self._connect()

@@ -57,11 +57,10 @@ def create_atomically(path: Path, fill: Callable[[sqlite3.Connection], None]) ->
     finally:
         db.close()  # checkpoints the log into the file and removes it
     _fsync(new)
-    Path(f"{path}.commits").unlink(missing_ok=True)
+    write_counter(path, 0, 0)  # (the store at path, if any, is discarded next)
     _remove(path)
     os.replace(new, path)
     _fsync(path.parent, directory=True)
-    write_counter(path, 0, 0)
 
 
 def _counter_line(commits: int, episodes: int) -> bytes:
@@ -71,16 +70,18 @@ def _counter_line(commits: int, episodes: int) -> bytes:
 
 def write_counter(path: Path, commits: int, episodes: int) -> None:
     """Record, synced, that the store at ``path`` holds ``commits`` commits and ``episodes``
-    bought episode rows (called right after each commit)."""
-    counter = Path(f"{path}.commits")
-    fd = os.open(counter, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    bought episode rows (called right after each commit). Written to ``PATH.commits.new`` and
+    renamed over the counter: a kill at any instant leaves the old count or the new one (an
+    old one is a store one commit ahead: accepted), never an empty or half-written counter."""
+    new = Path(f"{path}.commits.new")
+    new.unlink(missing_ok=True)
+    fd = os.open(new, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     try:
-        line = _counter_line(commits, episodes)
-        os.pwrite(fd, line, 0)
-        os.ftruncate(fd, len(line))
+        os.write(fd, _counter_line(commits, episodes))
         os.fsync(fd)
     finally:
         os.close(fd)
+    os.replace(new, Path(f"{path}.commits"))
 
 
 def read_counter(path: Path) -> tuple[int, int] | None:
