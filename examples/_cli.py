@@ -1,8 +1,9 @@
 """Command-line parsing shared by the example scripts, light enough to run before torch loads.
 
 Every example reads top to bottom the same way: its docstring, a dataclass ``Args`` (one field
-per option, the string literal under a field is its ``--help`` text), a ``parse_args`` built on
-:func:`parse`, then::
+per option, declared with :func:`field`, whose ``help`` is its ``--help`` text: kept in the
+field's metadata, so ``--help`` needs no source code and a script runs however it is started,
+``python -m cProfile`` or a zipped install), a ``parse_args`` built on :func:`parse`, then::
 
     if __name__ == "__main__":
         parse_args()  # --help and bad flags answer here, before the heavy imports below
@@ -34,9 +35,8 @@ status 2).
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
-import inspect
+import math
 import os
 import re
 import shutil
@@ -57,6 +57,16 @@ _LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 MIN_FREE_MB = 50
 """An output folder needs at least this much free space (MB) before a run starts."""
 
+MAX_THREADS = 1024
+"""``--threads`` above this is refused (torch would try to start them all)."""
+
+TINY_LAMBDA = 1e-10
+"""The smallest λ (``torch_api._checks.TINY_LAMBDA``; a test keeps them equal)."""
+
+BYTES_PER_TRANSITION = 1024
+"""What one stored or collected transition costs in memory, with the designs built from it (a
+generous bound, for :func:`memory_error`)."""
+
 _DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
 
@@ -68,13 +78,14 @@ def field(
     above: float | None = None,
     choices: Sequence[Any] | None = None,
     why: str = "",
+    help: str = "",
 ) -> Any:
-    """A dataclass field with its valid range or its choices.
+    """A dataclass field with its ``--help`` text and its valid range or its choices.
 
     ``low <= value <= high`` (either bound optional), ``value > above``, or ``value in
     choices``. ``why`` is appended to the error, e.g. ``"(a paired t-test needs two)"``.
     """
-    meta = {"low": low, "high": high, "above": above, "why": why}
+    meta = {"low": low, "high": high, "above": above, "why": why, "help": help}
     meta["choices"] = tuple(choices) if choices else None
     return dataclasses.field(default=default, metadata=meta)
 
@@ -84,10 +95,8 @@ class SelectionOptions:
     """The settings of the sampling-policy selection (Algorithm 2), in every script that selects.
     A script's ``Args`` extends it, declaring a field again where its default differs."""
 
-    repeats: int = field(5, low=1)
-    """Z, J-values averaged into J'"""
-    lam: float = field(1e-3, above=0)
-    """λ, ridge regularisation"""
+    repeats: int = field(5, low=1, help="Z, J-values averaged into J'")
+    lam: float = field(1e-3, low=TINY_LAMBDA, help="λ, ridge regularisation")
 
 
 @dataclasses.dataclass
@@ -97,22 +106,40 @@ class RunOptions:
     Args(SelectionOptions, RunOptions)`` lists the run options first in ``--help``), declaring a
     field again where its default differs."""
 
-    trials: int = field(2, low=2, why="(a paired t-test needs two)")
-    """independent trials, all run as one batch"""
-    seed: int = 0
-    """master seed; AL and PL of a schedule share their seeds (a paired design)"""
-    out_dir: str = "results"
-    """where the JSON, the CSV, the figure and the stored runs go"""
-    resume: bool = False
-    """continue the runs stored in out_dir; completed runs are not recomputed (a missing run
-    starts fresh)"""
-    overwrite: bool = False
-    """discard the runs stored in out_dir and start over"""
-    threads: int = field(0, low=0)
-    """torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)"""
-    logger: str = field("none", choices=LOGGERS)
-    """also write the learning curves (means over trials) with a TorchRL logger under
-    <out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"""
+    trials: int = field(
+        2, low=2, why="(a paired t-test needs two)", help="independent trials, all run as one batch"
+    )
+    seed: int = field(
+        0,
+        low=0,
+        high=2**63 - 1,
+        help="master seed; AL and PL of a schedule share their seeds (a paired design)",
+    )
+    out_dir: str = field(
+        "results", help="where the JSON, the CSV, the figure and the stored runs go"
+    )
+    resume: bool = field(
+        False,
+        help=(
+            "continue the runs stored in out_dir; completed runs are not recomputed (a missing "
+            "run starts fresh)"
+        ),
+    )
+    overwrite: bool = field(False, help="discard the runs stored in out_dir and start over")
+    threads: int = field(
+        0,
+        low=0,
+        high=MAX_THREADS,
+        help="torch intra-op threads (0: torch's default; 1 is much faster on a busy machine)",
+    )
+    logger: str = field(
+        "none",
+        choices=LOGGERS,
+        help=(
+            "also write the learning curves (means over trials) with a TorchRL logger under "
+            "<out-dir>/logs: csv, tensorboard or wandb (the last two need their package)"
+        ),
+    )
 
 
 @dataclasses.dataclass
@@ -120,19 +147,28 @@ class ChunkOptions(RunOptions):
     """:class:`RunOptions` and where the runs go: the device, and chunks of trials on a
     backend (``torch_api.dispatch``)."""
 
-    device: str = "cpu"
-    """where the algebra runs (cpu, cuda or cuda:N)"""
-    backend: str = field("local", choices=BACKENDS)
-    """where the chunks of trials run: local (here, one after another), processes (a pool of
-    local worker processes) or ray"""
-    chunks: int = field(1, low=1)
-    """C, chunks of trials per schedule and method (each one batched run; results concatenated)"""
-    workers: int = field(0, low=0)
-    """processes backend: worker processes (0: one per CPU core)"""
-    ray_address: str = ""
-    """Ray cluster to join (e.g. auto); empty starts a local Ray instance"""
-    ray_cpus: int = field(0, low=0)
-    """CPUs of a local Ray instance (0: all)"""
+    device: str = field("cpu", help="where the algebra runs (cpu, cuda or cuda:N)")
+    backend: str = field(
+        "local",
+        choices=BACKENDS,
+        help=(
+            "where the chunks of trials run: local (here, one after another), processes (a pool "
+            "of local worker processes) or ray"
+        ),
+    )
+    chunks: int = field(
+        1,
+        low=1,
+        help=(
+            "C, chunks of trials per schedule and method (each one batched run; results "
+            "concatenated)"
+        ),
+    )
+    workers: int = field(0, low=0, help="processes backend: worker processes (0: one per CPU core)")
+    ray_address: str = field(
+        "", help="Ray cluster to join (e.g. auto); empty starts a local Ray instance"
+    )
+    ray_cpus: int = field(0, low=0, help="CPUs of a local Ray instance (0: all)")
 
 
 def run_options_error(args) -> str | None:
@@ -149,19 +185,9 @@ def run_options_error(args) -> str | None:
 
 
 def field_docs(cls) -> dict[str, str]:
-    """The string literal under each field of a dataclass and of its dataclass bases (for
-    --help); a field declared again in a subclass takes the subclass's text."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        body = ast.parse(inspect.getsource(klass)).body[0].body
-        docs |= {
-            a.target.id: " ".join(b.value.value.split())
-            for a, b in zip(body, body[1:], strict=False)
-            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr)
-        }
-    return docs
+    """The ``help`` of each field of a dataclass (for --help); a field declared again in a
+    subclass has the subclass's text."""
+    return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -223,11 +249,14 @@ def _metavar(f: dataclasses.Field) -> str:
 
 
 def range_error(cls, args) -> str | None:
-    """The first field of ``args`` outside its declared range or choices, as one line."""
+    """The first field of ``args`` outside its declared range or choices (or a number that is
+    not finite), as one line."""
     for f in dataclasses.fields(cls):
         value, meta = getattr(args, f.name), f.metadata
         flag = f"--{f.name.replace('_', '-')}"
         why = f" {meta['why']}" if meta.get("why") else ""
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"{flag} must be a finite number, got {value}"
         if meta.get("choices") and value not in meta["choices"]:
             options = ", ".join(map(str, meta["choices"]))
             return f"{flag} must be one of {options}{why}, got {value!r}"
@@ -286,6 +315,24 @@ def out_dir_error(
             f"{flag} {str(folder)!r} has {free_mb:.0f} MB free, a run needs at least {need_mb} MB"
         )
     return None
+
+
+def memory_error(transitions: float, flags: str) -> str | None:
+    """Why a run that holds ``transitions`` transitions at once would not fit in the memory
+    available here (:data:`BYTES_PER_TRANSITION` each), naming the ``flags`` that set it."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            kib = next(int(line.split()[1]) for line in meminfo if line.startswith("MemAvailable"))
+        available = kib * 1024
+    except (OSError, StopIteration, ValueError):
+        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    need = transitions * BYTES_PER_TRANSITION
+    if need <= available:
+        return None
+    return (
+        f"a run of these sizes holds about {transitions:.3g} transitions ({need / 2**30:.3g} GiB), "
+        f"more than the {available / 2**30:.1f} GiB of memory available: lower {flags}"
+    )
 
 
 def logger_error(kind: str) -> str | None:

@@ -1,17 +1,27 @@
-"""Durable runs of the examples: a folder holding runs needs ``--resume`` or ``--overwrite``;
-SIGINT/SIGTERM (the commit in flight completes) and store errors end the script with one line.
+"""Durable runs of the examples: one run writes an output folder at a time (its lock is held
+from the first check to the last file written); a folder holding runs or another run's results
+needs ``--resume`` or ``--overwrite``; SIGINT/SIGTERM (the commit in flight completes) and store
+errors end the script with one line.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import json
 import os
 import signal
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from torch_api.run_guard import lock_run
 from torch_api.store import RunStore, StoreError
+
+MAY_CHANGE_ON_RESUME = ("resume", "overwrite", "threads", "backend", "workers", "chunks")
+MAY_CHANGE_ON_RESUME += ("ray_address", "ray_cpus", "logger", "device")
+"""Arguments a resumed run may give otherwise than the run whose results are in its folder
+(where and how fast it runs, not what it computes)."""
 
 
 class Interrupted(BaseException):
@@ -56,19 +66,88 @@ def durable_runs(paths: Sequence[Path], where: str | os.PathLike) -> Iterator[No
         exit_store_error(error)
 
 
-def stored_runs_error(paths: Sequence[Path], resume: bool, overwrite: bool) -> str | None:
-    """Why the script must not start: runs are stored at ``paths`` and neither ``--resume`` nor
-    ``--overwrite`` was given (or both were); None if it may."""
+@contextlib.contextmanager
+def folder_held(out: Path, stores: Sequence[Path], outputs: Sequence[Path], args) -> Iterator[None]:
+    """The block writes the output folder ``out`` (its runs at ``stores``, its files
+    ``outputs``) holding the folder's lock (``<out>/.folder.lock``): a second script on the
+    folder, ``--overwrite`` included, ends with one line (exit 1) before it touches anything.
+    Before the block: misplaced paths (exit 2), then :func:`stored_runs_error` (exit 1)."""
+    if (why := misplaced_error(stores, outputs)) is not None:
+        print(f"error: {why}", file=sys.stderr, flush=True)
+        raise SystemExit(2)
+    try:
+        fd = lock_run(Path(out) / ".folder", what=f"the folder {out}")
+    except StoreError as error:
+        exit_store_error(error)
+    try:
+        if (
+            why := stored_runs_error(stores, args.resume, args.overwrite, outputs, args)
+        ) is not None:
+            raise SystemExit(f"error: {why}")
+        yield
+    finally:
+        os.close(fd)
+
+
+def misplaced_error(stores: Sequence[Path], outputs: Sequence[Path]) -> str | None:
+    """Why the script could not write its files: a store's folder or one of its files exists
+    as something else (a file where a folder goes, a folder where a file goes); None if not."""
+    for folder in dict.fromkeys(Path(p).parent for p in stores):
+        if folder.exists() and not folder.is_dir():
+            return f"{folder} is in the way: a file where the stored runs' folder goes"
+    for path in map(Path, [*stores, *outputs]):
+        if path.exists() and not path.is_file():
+            return f"{path} is in the way: not a file, where the script writes one"
+    return None
+
+
+def stored_runs_error(
+    paths: Sequence[Path], resume: bool, overwrite: bool, outputs: Sequence[Path] = (), args=None
+) -> str | None:
+    """Why the script must not start, or None if it may: both ``--resume`` and ``--overwrite``;
+    or neither, and runs are stored at ``paths`` or beside them, or the results ``outputs`` of
+    a run are there; or ``--resume`` of a run of other arguments than the results' (``args``,
+    a dataclass, against the arguments in the first output, a JSON file)."""
     if resume and overwrite:
         return "--resume and --overwrite exclude each other"
-    held = [p for p in paths if p.is_file() and p.stat().st_size > 0]
-    if held and not (resume or overwrite):
+    if overwrite:
+        return None
+    if resume:
+        return None if args is None or not outputs else _other_results(Path(outputs[0]), args)
+    beside = [q for folder in {Path(p).parent for p in paths} for q in sorted(folder.glob("*.db"))]
+    held = [p for p in dict.fromkeys([*paths, *beside]) if p.is_file() and p.stat().st_size > 0]
+    if held:
         names = ", ".join(str(p) for p in held[:3]) + (" ..." if len(held) > 3 else "")
         return (
             f"runs are stored already ({names}); add --resume to continue them or --overwrite "
             "to discard them"
         )
+    if made := [str(p) for p in outputs if Path(p).exists()]:
+        return (
+            f"the results of a run are in the folder already ({', '.join(made)}); add "
+            "--overwrite to replace them, or write into another --out-dir"
+        )
     return None
+
+
+def _other_results(results: Path, args) -> str | None:
+    """Why ``--resume`` with ``args`` must not replace the results file ``results``, or None."""
+    try:
+        theirs = json.loads(results.read_text())["args"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # no results (or unreadable ones): nothing of another run to keep
+    mine = json.loads(json.dumps(dataclasses.asdict(args)))
+    differ = [
+        f"--{k.replace('_', '-')} {theirs.get(k)!r}, not {mine.get(k)!r}"
+        for k in sorted(theirs.keys() | mine.keys())
+        if k not in MAY_CHANGE_ON_RESUME and theirs.get(k) != mine.get(k)
+    ]
+    if not differ:
+        return None
+    return (
+        f"the results in {results} are of a run with other arguments ({'; '.join(differ[:3])}); "
+        "resume it with its own, add --overwrite to replace them, or use another --out-dir"
+    )
 
 
 def stored_summary(paths: Sequence[Path]) -> tuple[int, int]:

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 # the harness is the examples' one entry: the numbers' and the durable runs' parts re-exported
-from _durable import durable_runs, stored_runs_error  # noqa: F401
+from _durable import durable_runs, folder_held, stored_runs_error  # noqa: F401
 from _results import (  # noqa: F401
     COLUMNS,
     METHODS,
@@ -184,6 +184,12 @@ class Experiment:
     """a run's store name, with ``{schedule}``, ``{method}`` (AL, PL) and ``{mode}``"""
     curves: tuple[str, ...] = ()
     """the measures written by ``--logger`` (means over trials per iteration)"""
+    files: tuple[str, ...] = ()
+    """the files ``report`` writes besides ``<name>.json`` and ``<name>.csv`` (its figures)"""
+
+    def outputs(self, out: Path) -> list[Path]:
+        """The files the experiment writes into ``out``, its JSON first."""
+        return [out / f"{self.name}.json", out / f"{self.name}.csv", *(out / f for f in self.files)]
 
 
 def store_path(out: Path, experiment: Experiment, schedule: str, method: str, c: int, n: int):
@@ -226,12 +232,13 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
         for c, trials in enumerate(pieces)
     ]
     stores = [chunk.store for chunk in plan]
-    if (why := stored_runs_error(stores, args.resume, args.overwrite)) is not None:
-        raise SystemExit(f"error: {why}")
-    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    print(f"{len(plan)} chunks of about {args.trials // chunks} trials ({backend})")
-    started = time.perf_counter()
-    with durable_runs(stores, out / "checkpoints"):
+    with (
+        folder_held(out, stores, experiment.outputs(out), args),
+        durable_runs(stores, out / "checkpoints"),
+    ):
+        (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        print(f"{len(plan)} chunks of about {args.trials // chunks} trials ({backend})")
+        started = time.perf_counter()
         parts = run_chunks(
             experiment.run_chunk,
             plan,

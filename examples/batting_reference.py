@@ -19,12 +19,12 @@ from _cli import field, not_here, parse
 class Args:
     """Command-line arguments of the reference numbers."""
 
-    episodes: int = field(1000, low=1)
-    """noisy episodes of the uniformly random policy"""
-    seed: int = 0
-    """seed of the torque noise and of the random actions"""
-    out: str = "results/batting_reference.json"
-    """the JSON file the summary goes to (its folder is created)"""
+    episodes: int = field(1000, low=1, help="noisy episodes of the uniformly random policy")
+    seed: int = field(0, low=0, help="seed of the torque noise and of the random actions")
+    out: str = field(
+        "results/batting_reference.json",
+        help="the JSON file the summary goes to (its folder is created)",
+    )
 
 
 def parse_args(argv: list[str] | None = None) -> Args:

@@ -51,36 +51,67 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, SelectionOptions, field, parse
+from _cli import ChunkOptions, SelectionOptions, field, memory_error, parse
 
 
 @dataclass
 class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the iterated chain-walk experiment."""
 
-    trials: int = field(1000, low=2, why="(a paired t-test needs two)")
-    """independent trials, all run as one batch (the paper: 1000)"""
-    out_dir: str = "results/chain_walk_api"
-    """where the JSON, the CSV, the figure and the stored runs go"""
-    device: str = "cpu"
-    """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all of it"""
-    tie_break: str = field("uniform", choices=("uniform", "lowest"))
-    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
-    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'left')"""
-    schedule: str = field("both", choices=("decreasing", "fixed", "both"))
-    """rewarded-episode schedule: decreasing (5,5,3,3,3,1,1), fixed (3 x 7) or both"""
-    iterations: int = field(7, low=1, high=7)
-    """L, iterations run (the schedules' first L entries; 7 in the paper)"""
-    steps: int = field(10, low=1)
-    """N, steps per rewarded episode"""
-    test_episodes: int = field(50, low=1)
-    """test episodes per trial for the performance estimate (eq. 61)"""
-    test_steps: int = field(50, low=1)
-    """steps per test episode (and the horizon of the exact value)"""
+    trials: int = field(
+        1000,
+        low=2,
+        why="(a paired t-test needs two)",
+        help="independent trials, all run as one batch (the paper: 1000)",
+    )
+    out_dir: str = field(
+        "results/chain_walk_api", help="where the JSON, the CSV, the figure and the stored runs go"
+    )
+    device: str = field(
+        "cpu",
+        help=(
+            "where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all "
+            "of it"
+        ),
+    )
+    tie_break: str = field(
+        "uniform",
+        choices=("uniform", "lowest"),
+        help=(
+            "how ε-greedy policies share the greedy mass among tied actions: uniform (equal "
+            "parts, so pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'left')"
+        ),
+    )
+    schedule: str = field(
+        "both",
+        choices=("decreasing", "fixed", "both"),
+        help="rewarded-episode schedule: decreasing (5,5,3,3,3,1,1), fixed (3 x 7) or both",
+    )
+    iterations: int = field(
+        7, low=1, high=7, help="L, iterations run (the schedules' first L entries; 7 in the paper)"
+    )
+    steps: int = field(10, low=1, help="N, steps per rewarded episode")
+    test_episodes: int = field(
+        50, low=1, help="test episodes per trial for the performance estimate (eq. 61)"
+    )
+    test_steps: int = field(
+        50, low=1, help="steps per test episode (and the horizon of the exact value)"
+    )
+
+
+def size_error(args: Args) -> str | None:
+    """Whether the largest chunk's episodes fit in memory (checked before any work starts):
+    rewarded, reward-free (Z repeats of 3 candidates) and test transitions at once."""
+    trials = -(-args.trials // args.chunks)
+    bought = 5 * args.iterations * args.steps  # (at most 5 episodes an iteration)
+    free = args.repeats * 3 * bought
+    test = args.test_episodes * args.test_steps
+    flags = "--trials, --steps, --test-episodes or --test-steps (or raise --chunks)"
+    return memory_error(trials * (bought + free + test), flags)
 
 
 def parse_args(argv=None) -> Args:
-    return parse(Args, argv, __doc__)
+    return parse(Args, argv, __doc__, check=size_error)
 
 
 if __name__ == "__main__":
@@ -218,6 +249,7 @@ def main(argv=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         run_seed=lambda seed, name: 1000 * seed + 100 * list(SCHEDULES).index(name),
         curves=(*MEASURES, "rewarded_transitions"),
+        files=("fig8_performance.png",),
     )
     return harness.run_experiment(args, experiment)
 

@@ -28,22 +28,16 @@ from _cli import SelectionOptions, field, not_here, parse
 class Args(SelectionOptions):
     """Command-line arguments of the one-step experiment."""
 
-    trials: int = field(100, low=1)
-    """independent trials (the paper: 100)"""
-    seed: int = 0
-    """seed of the environment and the policies"""
-    candidates: int = field(10, low=2)
-    """K, candidate k samples with ε = k / K"""
-    eval_epsilon: float = field(0.1, low=0.0, high=1.0)
-    """ε of the evaluation policies"""
-    episodes: int = field(10, low=1)
-    """M, episodes per data set"""
-    steps: int = field(10, low=1)
-    """N, steps per episode"""
-    out_dir: str = "results/chain_walk_one_step"
-    """where the JSON and the figures go"""
-    device: str = "cpu"
-    """where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N)"""
+    trials: int = field(100, low=1, help="independent trials (the paper: 100)")
+    seed: int = field(0, low=0, help="seed of the environment and the policies")
+    candidates: int = field(10, low=2, help="K, candidate k samples with ε = k / K")
+    eval_epsilon: float = field(0.1, low=0.0, high=1.0, help="ε of the evaluation policies")
+    episodes: int = field(10, low=1, help="M, episodes per data set")
+    steps: int = field(10, low=1, help="N, steps per episode")
+    out_dir: str = field("results/chain_walk_one_step", help="where the JSON and the figures go")
+    device: str = field(
+        "cpu", help="where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N)"
+    )
 
 
 def parse_args(argv=None) -> Args:

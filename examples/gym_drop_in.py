@@ -59,29 +59,38 @@ from _cli import RunOptions, SelectionOptions, field, parse
 class Args(SelectionOptions, RunOptions):
     """Command-line arguments of the CartPole drop-in demo."""
 
-    trials: int = field(8, low=2, why="(a paired t-test needs two)")
-    """independent trials, all run as one batch"""
-    out_dir: str = "results/gym_drop_in"
-    """where the JSON, the CSV, the figure and the stored runs go"""
-    schedule: str = "10,10,6,6,6,2,2"
-    """rewarded episodes per iteration, comma-separated (its length is L)"""
-    iterations: int = field(0, low=0)
-    """run only the first L iterations of the schedule (0: all)"""
-    steps: int = field(25, low=1)
-    """N, steps per episode (an episode may end earlier when the pole falls)"""
-    gamma: float = field(0.95, above=0.0, high=1.0)
-    """discount γ, in (0, 1]"""
-    grid: float = field(0.5, above=0)
-    """Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin"""
-    tau: float = field(0.75, above=0)
-    """Gaussian kernel width τ in normalised units"""
-    test_episodes: int = field(20, low=1)
-    """test episodes per trial and iteration"""
-    test_steps: int = field(200, low=1)
-    """longest test episode (steps)"""
-    reward_free_workers: int = field(0, low=0)
-    """if > 0, collect the reward-free episodes in this many worker processes (TorchRL's
-    MultiSyncCollector; each steps its share of the CartPoles)"""
+    trials: int = field(
+        8, low=2, why="(a paired t-test needs two)", help="independent trials, all run as one batch"
+    )
+    out_dir: str = field(
+        "results/gym_drop_in", help="where the JSON, the CSV, the figure and the stored runs go"
+    )
+    schedule: str = field(
+        "10,10,6,6,6,2,2", help="rewarded episodes per iteration, comma-separated (its length is L)"
+    )
+    iterations: int = field(
+        0, low=0, help="run only the first L iterations of the schedule (0: all)"
+    )
+    steps: int = field(
+        25, low=1, help="N, steps per episode (an episode may end earlier when the pole falls)"
+    )
+    gamma: float = field(0.95, above=0.0, high=1.0, help="discount γ, in (0, 1]")
+    grid: float = field(
+        0.5,
+        above=0,
+        help="Gaussian centres at ±grid in every normalised coordinate (2^4 = 16) plus the origin",
+    )
+    tau: float = field(0.75, above=0, help="Gaussian kernel width τ in normalised units")
+    test_episodes: int = field(20, low=1, help="test episodes per trial and iteration")
+    test_steps: int = field(200, low=1, help="longest test episode (steps)")
+    reward_free_workers: int = field(
+        0,
+        low=0,
+        help=(
+            "if > 0, collect the reward-free episodes in this many worker processes (TorchRL's "
+            "MultiSyncCollector; each steps its share of the CartPoles)"
+        ),
+    )
 
 
 UNAVAILABLE = {
@@ -275,6 +284,7 @@ def main(argv=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         store_stem="{mode}",
         curves=MEASURES,
+        files=("performance.png",),
     )
     return harness.run_experiment(args, experiment)
 

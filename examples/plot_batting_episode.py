@@ -20,12 +20,14 @@ from _cli import field, not_here, parse
 class Args:
     """Command-line arguments of the episode picture."""
 
-    sequence: str = "0100011110"
-    """the actions, one digit per control step (0 cock, 1 swing), e.g. 0011111000"""
-    out: str = "results/batting_episode.png"
-    """the PNG file (its folder is created)"""
-    snapshot_ms: float = field(7.5, above=0)
-    """simulated time between two drawn arm snapshots (ms)"""
+    sequence: str = field(
+        "0100011110",
+        help="the actions, one digit per control step (0 cock, 1 swing), e.g. 0011111000",
+    )
+    out: str = field("results/batting_episode.png", help="the PNG file (its folder is created)")
+    snapshot_ms: float = field(
+        7.5, above=0, help="simulated time between two drawn arm snapshots (ms)"
+    )
 
 
 UNAVAILABLE = not_here("resume", "backend", "out_dir") | {

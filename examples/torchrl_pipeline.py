@@ -43,33 +43,47 @@ from _cli import SelectionOptions, field, not_here, parse
 class Args(SelectionOptions):
     """Command-line arguments of the TorchRL pipeline example."""
 
-    repeats: int = field(2, low=1)
-    """Z, J-values averaged into J'"""
-    seed: int = 0
-    """seed of the run: every iteration's draws (torch's generator, the environments' seeds) are
-    derived from (seed, iteration)"""
-    gamma: float = field(0.99, above=0.0, high=1.0)
-    """discount γ, in (0, 1]"""
-    out_dir: str = "results/torchrl_pipeline"
-    """where the JSON and the stored run go"""
-    resume: bool = False
-    """continue the run stored in out_dir (its stored rewards are reused, never bought again)"""
-    overwrite: bool = False
-    """discard the run stored in out_dir and start over"""
-    iterations: int = field(5, low=1)
-    """L, policy iterations"""
-    episodes: int = field(6, low=1)
-    """M, rewarded episodes bought per iteration (by the Collector)"""
-    reward_free_episodes: int = field(4, low=1)
-    """reward-free episodes per candidate and repeat (the selector's M)"""
-    steps: int = field(200, low=1)
-    """N, longest episode (StepCounter's max_steps; MountainCar's own limit is 200)"""
-    grid: int = field(5, low=2)
-    """Gaussian centres on a grid × grid lattice over the normalised (position, velocity) box"""
-    tau: float = field(0.4, above=0)
-    """Gaussian kernel width τ in normalised units"""
-    test_episodes: int = field(10, low=1)
-    """greedy test episodes of the policy after every iteration"""
+    repeats: int = field(2, low=1, help="Z, J-values averaged into J'")
+    seed: int = field(
+        0,
+        low=0,
+        help=(
+            "seed of the run: every iteration's draws (torch's generator, the environments' "
+            "seeds) are derived from (seed, iteration)"
+        ),
+    )
+    gamma: float = field(0.99, above=0.0, high=1.0, help="discount γ, in (0, 1]")
+    out_dir: str = field("results/torchrl_pipeline", help="where the JSON and the stored run go")
+    resume: bool = field(
+        False,
+        help=(
+            "continue the run stored in out_dir (its stored rewards are reused, never bought again)"
+        ),
+    )
+    overwrite: bool = field(False, help="discard the run stored in out_dir and start over")
+    iterations: int = field(5, low=1, help="L, policy iterations")
+    episodes: int = field(
+        6, low=1, help="M, rewarded episodes bought per iteration (by the Collector)"
+    )
+    reward_free_episodes: int = field(
+        4, low=1, help="reward-free episodes per candidate and repeat (the selector's M)"
+    )
+    steps: int = field(
+        200,
+        low=1,
+        help="N, longest episode (StepCounter's max_steps; MountainCar's own limit is 200)",
+    )
+    grid: int = field(
+        5,
+        low=2,
+        help=(
+            "Gaussian centres on a grid × grid lattice over the normalised (position, velocity) box"
+        ),
+    )
+    tau: float = field(0.4, above=0, help="Gaussian kernel width τ in normalised units")
+    test_episodes: int = field(
+        10, low=1, help="greedy test episodes of the policy after every iteration"
+    )
 
 
 UNAVAILABLE = not_here("backend") | {
@@ -156,10 +170,10 @@ def run_config(args: Args) -> dict:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    path = Path(args.out_dir) / STORE
-    if (why := harness.stored_runs_error([path], args.resume, args.overwrite)) is not None:
-        raise SystemExit(f"error: {why}")
-    with harness.durable_runs([path], path.parent):  # one line on a signal or a store error
+    out = Path(args.out_dir)
+    path, outputs = out / STORE, [out / "torchrl_pipeline.json"]
+    # one run writes the folder; one line on a signal or a store error
+    with harness.folder_held(out, [path], outputs, args), harness.durable_runs([path], path.parent):
         config = run_config(args)
         with RunStore(path, config=config, resume=args.resume, overwrite=args.overwrite) as store:
             return run(args, store)

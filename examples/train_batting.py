@@ -71,32 +71,65 @@ from _cli import ChunkOptions, SelectionOptions, field, parse
 class Args(SelectionOptions, ChunkOptions):
     """Command-line arguments of the batting experiment."""
 
-    trials: int = field(32, low=1)
-    """T, independent trials, all run as one batch (the paper: 500)"""
-    out_dir: str = "results/train_batting"
-    """where the JSON, CSV, figure and checkpoints go"""
-    device: str = "cpu"
-    """where the algebra runs (cpu, cuda or cuda:N); physics is MuJoCo on the CPU"""
-    schedule: str = field("decreasing", choices=("decreasing", "fixed", "both"))
-    """rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both"""
-    iterations: int = field(7, low=1, high=7)
-    """how many of the schedule's L = 7 iterations to run"""
-    episodes: int = field(0, low=0)
-    """if > 0, M_l of every iteration (replaces the schedule's numbers)"""
-    tie_break: str = field("uniform", choices=("uniform", "lowest"))
-    """how ε-greedy policies share the greedy mass among tied actions: uniform (equal parts, so
-    pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'cock')"""
-    physics_audit: float = field(0.0, low=0.0, high=1.0)
-    """fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); the
-    physics steps are counted either way"""
-    basis_widths: str = ""
-    """beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (rad, rad/s, rad,
-    rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. 0.785,3.14,0.785,3.14"""
-    end_at_hit: bool = False
-    """beyond the paper: episodes terminate at the first bat-ball contact (the ball is gone)"""
-    fit: str = field("brm", choices=("brm", "lstd"))
-    """how θ is fitted: brm (the paper: least squares of r on psi_hat) or lstd (beyond the paper:
-    LSTD-Q, with AL's J of the same learner)"""
+    trials: int = field(
+        32, low=1, help="T, independent trials, all run as one batch (the paper: 500)"
+    )
+    out_dir: str = field(
+        "results/train_batting", help="where the JSON, CSV, figure and checkpoints go"
+    )
+    device: str = field(
+        "cpu", help="where the algebra runs (cpu, cuda or cuda:N); physics is MuJoCo on the CPU"
+    )
+    schedule: str = field(
+        "decreasing",
+        choices=("decreasing", "fixed", "both"),
+        help="rewarded-episode schedule: decreasing (10,10,7,7,7,4,4), fixed (7 x 7) or both",
+    )
+    iterations: int = field(
+        7, low=1, high=7, help="how many of the schedule's L = 7 iterations to run"
+    )
+    episodes: int = field(
+        0, low=0, help="if > 0, M_l of every iteration (replaces the schedule's numbers)"
+    )
+    tie_break: str = field(
+        "uniform",
+        choices=("uniform", "lowest"),
+        help=(
+            "how ε-greedy policies share the greedy mass among tied actions: uniform (equal "
+            "parts, so pi_1 of θ_0 = 1 is uniform) or lowest (all to action 0, 'cock')"
+        ),
+    )
+    physics_audit: float = field(
+        0.0,
+        low=0.0,
+        high=1.0,
+        help=(
+            "fraction of physics rollouts to sample for replay (benchmarks/bench_figure10.py); "
+            "the physics steps are counted either way"
+        ),
+    )
+    basis_widths: str = field(
+        "",
+        help=(
+            "beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (rad, rad/s, rad, "
+            "rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. "
+            "0.785,3.14,0.785,3.14"
+        ),
+    )
+    end_at_hit: bool = field(
+        False,
+        help=(
+            "beyond the paper: episodes terminate at the first bat-ball contact (the ball is gone)"
+        ),
+    )
+    fit: str = field(
+        "brm",
+        choices=("brm", "lstd"),
+        help=(
+            "how θ is fitted: brm (the paper: least squares of r on psi_hat) or lstd (beyond the "
+            "paper: LSTD-Q, with AL's J of the same learner)"
+        ),
+    )
 
 
 def parse_widths(text: str) -> list[float] | None:
@@ -352,6 +385,7 @@ def main(argv=None, on_checkpoint=None) -> dict:
         report=lambda results, wall: report(args, experiment, results, wall),
         store_stem="{schedule}_{mode}",
         curves=("performance", "hit_share", "rewarded_transitions"),
+        files=("fig10_performance.png",),
     )
     return harness.run_experiment(args, experiment, on_checkpoint=on_checkpoint)
 

@@ -12,6 +12,8 @@ from torch_api.iteration import ActivePolicyIteration
 from torch_api.policies import TabularPolicy
 from torch_api.psi import PsiHat
 
+NO_SUCH_GPU = "cuda:99" if torch.cuda.is_available() else "cuda"
+
 
 def _basis():
     return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
@@ -46,11 +48,30 @@ def _api(**overrides):
         ({"trial_seeds": [1, 2, 3]}, "trial_seeds must hold num_trials = 2 seeds, got 3"),
         ({"num_trials": 0}, "num_trials must be >= 1, got 0"),
         ({"env": ChainWalkEnv(batch_size=4)}, "num_trials needs env as a callable"),
+        ({"lam": True}, "lam must be > 0, got True"),
+        ({"lam": 1e-300}, "lam must be >= 1e-10 .* got 1e-300"),
+        ({"seed": 1.5}, "seed must be an integer, got 1.5"),
+        ({"candidate_offsets": (0.0, float("nan"))}, r"candidate_offsets must be finite"),
+        ({"device": NO_SUCH_GPU}, f"device '{NO_SUCH_GPU}': torch sees"),
     ],
 )
 def test_api_arguments_are_checked_early(overrides, message):
     with pytest.raises(ValueError, match=message):
         _api(**overrides)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"tau": float("inf")}, "tau must be finite"),
+        ({"tau": 1e-300}, "tau must be finite with 2·tau² a normal number, got 1e-300"),
+        ({"num_actions": 2.5}, "num_actions must be an integer, got 2.5"),
+    ],
+)
+def test_basis_arguments_are_checked_early(overrides, message):
+    args = {"centers": torch.tensor(CENTERS)[:, None], "tau": TAU, "num_actions": 2} | overrides
+    with pytest.raises(ValueError, match=message):
+        GaussianActionBasis(**args)
 
 
 def test_collapsed_importance_weights_warn_with_the_effective_sample_size():

@@ -30,6 +30,7 @@ BENCHMARKS = ROOT / "benchmarks"
         ),
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
         (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
+        (["durability_attacks.py", "--tries", "4"], "SIGTERM at statement k: resumed"),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),
     ],
 )

@@ -91,13 +91,29 @@ def _fields(script: str) -> set[str]:
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_every_option_has_help_text(script):
-    body = _args_class(script).body
-    for i, node in enumerate(body):
+    """Declared as ``field(..., help="...")``: kept where no source can be read."""
+    for node in _args_class(script).body:
         if isinstance(node, ast.AnnAssign):
-            after = body[i + 1] if i + 1 < len(body) else None
-            assert isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant), (
+            help_ = [k for k in getattr(node.value, "keywords", ()) if k.arg == "help"]
+            assert help_ and ast.literal_eval(help_[0].value), (
                 f"{script}: option {node.target.id} has no help text"
             )
+
+
+def test_a_script_runs_under_the_profiler(tmp_path):
+    """``python -m cProfile`` runs a script as ``__main__`` of its own module, so no class of
+    the script has source to read: the help texts were read from the source (``OSError: could
+    not find class definition``)."""
+    profile, out = tmp_path / "p", tmp_path / "out"
+    tiny = ("--iterations", "1", "--steps", "5", "--test-episodes", "2", "--test-steps", "5")
+    tiny += ("--schedule", "decreasing", "--repeats", "1", "--threads", "1")
+    done, _ = _run(
+        "chain_walk_api.py",
+        *("--trials", "10", *tiny, "--out-dir", str(out)),
+        python_flags=("-m", "cProfile", "-o", str(profile)),
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (out / "chain_walk_api.json").is_file() and profile.stat().st_size > 0
 
 
 def test_the_shared_run_options_have_help_text():
@@ -105,6 +121,31 @@ def test_the_shared_run_options_have_help_text():
         docs = _cli.field_docs(options)
         assert {f.name for f in dataclasses.fields(options)} <= set(docs), options.__name__
         assert all(docs.values())
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [
+        ("--lam", "inf", "--lam must be a finite number, got inf"),
+        ("--lam", "1e-300", "--lam must be >= 1e-10, got 1e-300"),
+        ("--seed", "-1", "--seed must lie in 0..9223372036854775807, got -1"),
+        ("--threads", "100000", "--threads must lie in 0..1024, got 100000"),
+        ("--steps", str(10**8), "GiB of memory available: lower --trials, --steps"),
+    ],
+)
+def test_values_that_failed_late_are_one_line_exit_2_at_once(flag, value, message):
+    """Each was a traceback or a failure after seconds of work (``--lam 1e-300`` after the
+    rewards were stored; ``--steps 10**8`` no answer in a minute)."""
+    done, seconds = _run("chain_walk_api.py", flag, value)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert message in done.stderr.strip().splitlines()[-1], done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and seconds < HELP_SECONDS
+
+
+def test_the_smallest_lambda_is_the_librarys():
+    from torch_api import _checks
+
+    assert _cli.TINY_LAMBDA == _checks.TINY_LAMBDA
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
 from torch import nn
+
+from torch_api._checks import _count
 
 __all__ = ["GaussianActionBasis", "as_features"]
 
@@ -59,10 +63,11 @@ class GaussianActionBasis(nn.Module):
             )
         if not torch.isfinite(centers).all():
             raise ValueError("centers must be finite")
-        if not tau > 0:
-            raise ValueError(f"tau must be > 0, got {tau}")
-        if num_actions < 1:
-            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
+        if isinstance(tau, bool) or not (isinstance(tau, numbers.Real) and tau > 0):
+            raise ValueError(f"tau must be > 0, got {tau!r}")
+        if not (math.isfinite(tau) and math.isfinite(2 * tau**2) and 2 * tau**2 > 1e-300):
+            raise ValueError(f"tau must be finite with 2·tau² a normal number, got {tau}")
+        num_actions = _count("num_actions", num_actions)
         self.register_buffer("centers", centers.to(torch.get_default_dtype()))
         self.tau = float(tau)
         self.num_actions = int(num_actions)

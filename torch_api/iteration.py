@@ -29,7 +29,16 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api._checks import _check_choice, _check_lambda, _check_schedule, _count, _initial_theta
+from torch_api._checks import (
+    _check_choice,
+    _check_device,
+    _check_finite,
+    _check_lambda,
+    _check_schedule,
+    _check_seed,
+    _count,
+    _initial_theta,
+)
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import EpisodeBuffer, _warm_start
 from torch_api.buying import RewardBuying
@@ -229,6 +238,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         if not 0 < gamma <= 1:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         _check_lambda(lam)
+        seed, device = _check_seed(seed), _check_device(device)
+        candidate_offsets = _check_finite("candidate_offsets", candidate_offsets)
         _check_choice("rewarded_slice", rewarded_slice, SLICES)
         if (resume or overwrite) and checkpoint_path is None:
             raise ValueError("resume and overwrite need a checkpoint_path")
@@ -265,7 +276,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.family = family
         self.keep_reward_free = keep_reward_free
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
-        self.device = torch.device("cpu") if device is None else torch.device(device)
+        self.device = device
         self.psi = PsiHat(basis=basis, gamma=gamma, mode=psi_mode, k=knn_k)
         self._initial_theta = theta = _initial_theta(initial_theta, basis.num_features)
         self.theta = theta.expand(*self.trial_dims, basis.num_features).clone()

@@ -5,8 +5,8 @@ half-way by SIGINT/SIGTERM.
   held for as long as the store is open and released by the kernel when the process dies;
 * never through a symlink: the database, its ``-wal``/``-shm``/``-journal`` files and the lock
   must not be symbolic links;
-* signals held: SIGINT and SIGTERM are held back while a transaction commits and delivered
-  right after.
+* signals held: SIGINT and SIGTERM are held back while a transaction commits (in every thread:
+  the main thread blocks them and their handlers only note them) and delivered right after.
 """
 
 from __future__ import annotations
@@ -27,28 +27,44 @@ __all__ = ["lock_run", "refuse_symlinks", "signals_held"]
 
 @contextlib.contextmanager
 def signals_held() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM back (main thread) until the block is done, then deliver them."""
+    """Hold SIGINT/SIGTERM back until the block is done, then deliver them.
+
+    Two guards, both needed: the main thread blocks both signals (so no system call of the
+    block is cut), and their Python handlers are replaced by one that only notes the signal.
+    A signal sent to the process is taken by any thread that does not block it (``import
+    torch`` starts such threads) and its Python handler then runs in the main thread at the
+    next bytecode, inside the block: the noted signals are raised again after it, so the
+    handlers run once the block is done. Outside the main thread it does nothing (Python runs
+    signal handlers in the main thread only, so they never interrupt another thread's block).
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    held = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    held, noted = (signal.SIGINT, signal.SIGTERM), []
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    before = {sig: signal.signal(sig, lambda signum, frame: noted.append(signum)) for sig in held}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in before.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        for signum in dict.fromkeys(noted):
+            signal.raise_signal(signum)
 
 
 def refuse_symlinks(path: Path) -> None:
     """Raise :class:`StoreWriteError` if the run's database or one of its files is a symlink."""
-    for p in (path, *(Path(f"{path}{s}") for s in ("-wal", "-shm", "-journal", ".lock"))):
+    suffixes = ("-wal", "-shm", "-journal", ".lock", ".commits", ".commits.new", ".new")
+    for p in (path, *(Path(f"{path}{s}") for s in suffixes)):
         if p.is_symlink():
             raise StoreWriteError(f"{p} is a symbolic link; a run is never written through one")
 
 
-def lock_run(path: Path) -> int:
+def lock_run(path: Path, what: str | None = None) -> int:
     """Take the run's writer lock (``flock`` on ``PATH.lock``) and return its file descriptor;
-    closing the descriptor (or the process ending) releases it.
+    closing the descriptor (or the process ending) releases it. ``what``: how the messages
+    name what is locked (default: ``path``).
 
     Raises:
         RunInUseError: another process holds it (its pid and host are named).
@@ -67,7 +83,7 @@ def lock_run(path: Path) -> int:
         holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "unknown"
         os.close(fd)
         raise RunInUseError(
-            f"{path} is in use by another process ({holder}); wait for it to end or "
+            f"{what or path} is in use by another process ({holder}); wait for it to end or "
             "stop it before resuming"
         ) from None
     os.ftruncate(fd, 0)

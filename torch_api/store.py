@@ -12,7 +12,10 @@ them in an SQLite database (standard library) that survives kills at any moment:
   bytes); every value (its table, key and bytes) covered by a SHA-256 digest checked when the
   run is read; declared sizes checked against the bytes before any tensor is built;
 * one writer, never through a symlink, writes never interrupted half-way by SIGINT/SIGTERM
-  (:mod:`torch_api.run_guard`); the errors are in :mod:`torch_api.store_errors`.
+  (:mod:`torch_api.run_guard`); the errors are in :mod:`torch_api.store_errors`;
+* created atomically (an interrupt at any instant leaves no store or a complete empty one), and
+  a commit counter beside it that a shortened write-ahead log cannot hide
+  (:mod:`torch_api.store_files`): a store that lost committed rows is refused, never restarted.
 
 The settings that give the stored data its meaning (``config``) are stored with it and must
 match when a run is resumed.
@@ -21,16 +24,13 @@ match when a run is resumed.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
 import sqlite3
-import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 
 from torch_api.codec import decode_tensordict, encode_tensordict
 from torch_api.run_guard import lock_run, refuse_symlinks, signals_held
@@ -40,6 +40,16 @@ from torch_api.store_errors import (
     RunInUseError,
     StoreError,
     StoreWriteError,
+)
+from torch_api.store_files import create_atomically, lost_rows_error, write_counter
+from torch_api.store_read import (  # noqa: F401  (_digest: the tests forge rows with it)
+    FORMAT,
+    SCHEMA,
+    StoredRun,
+    _digest,
+    _json,
+    _unjson,
+    read_run,
 )
 
 __all__ = [
@@ -53,59 +63,6 @@ __all__ = [
     "decode_tensordict",
     "encode_tensordict",
 ]
-
-FORMAT = 2  # version of the database layout
-MAX_JSON_BYTES = 64 << 20  # a JSON value (a record, a selection) is never larger
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value BLOB NOT NULL, digest BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS selection (
-    iteration INTEGER PRIMARY KEY, value BLOB NOT NULL, free BLOB, digest BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS episode (
-    iteration INTEGER NOT NULL, episode INTEGER NOT NULL, value BLOB NOT NULL,
-    digest BLOB NOT NULL, PRIMARY KEY (iteration, episode));
-CREATE TABLE IF NOT EXISTS record (
-    iteration INTEGER PRIMARY KEY, value BLOB NOT NULL, digest BLOB NOT NULL);
-"""
-_TABLES = ("meta", "selection", "episode", "record")
-
-
-# -- the store ------------------------------------------------------------------------------
-
-
-def _digest(table: str, key: tuple, *values: bytes | None) -> bytes:
-    h = hashlib.sha256(json.dumps([table, *key]).encode())
-    for value in values:
-        h.update(b"\x00" if value is None else struct.pack("<Q", len(value)) + value)
-    return h.digest()
-
-
-def _json(value) -> bytes:
-    return json.dumps(value, allow_nan=False).encode()
-
-
-def _unjson(blob: bytes):
-    if len(blob) > MAX_JSON_BYTES:
-        raise ValueError(f"a JSON value of {len(blob)} bytes exceeds {MAX_JSON_BYTES}")
-    return json.loads(blob.decode())
-
-
-@dataclass
-class StoredRun:
-    """What a store holds, verified: ``config``, and per iteration l the selection
-    (``selections[l]``, reward-free episodes in ``free[l]``), the bought episodes
-    (``episodes[l][m]``, each ``[*T, N]``) and the completed iteration's record
-    (``records[l]``, a dict)."""
-
-    config: dict
-    selections: dict[int, dict] = field(default_factory=dict)
-    free: dict[int, TensorDict] = field(default_factory=dict)
-    episodes: dict[int, dict[int, TensorDict]] = field(default_factory=dict)
-    records: dict[int, dict] = field(default_factory=dict)
-
-    @property
-    def num_episodes(self) -> int:
-        """Episode indices stored (rows of the episode table)."""
-        return sum(len(e) for e in self.episodes.values())
 
 
 class RunStore:
@@ -144,6 +101,7 @@ class RunStore:
         self.stored: StoredRun | None = None  # with resume: the run as read (verified)
         self._lock_fd: int | None = None
         self._db: sqlite3.Connection | None = None
+        self._commits = 0
         try:
             self._open(resume=resume, overwrite=overwrite)
         except BaseException:
@@ -163,40 +121,76 @@ class RunStore:
         refuse_symlinks(path)
         self._lock_fd = lock_run(path)
         self.started_fresh = True
-        held = self._has_data()
+        held, lost = self._has_data()
+        if held and lost and not overwrite:
+            self.read(path)  # raises, saying what was lost
         if held and not (resume or overwrite):
             raise RunExistsError(
                 f"{path} holds a run ({held}); pass resume=True (--resume) to continue it or "
                 "overwrite=True (--overwrite) to discard it"
             )
         if held and resume:
-            stored = self.read(path)  # verifies every digest and the config
+            stored = self.read(path)  # verifies every digest, the counter and the config
             self._check_config(stored.config)
             self.stored, self.started_fresh = stored, False
-        self._connect()
+            self._commits = stored.commits
         if overwrite or not held:
-            with self._write() as db:
-                for table in _TABLES:
-                    db.execute(f"DELETE FROM {table}")
-                self._put(db, "meta", ("format",), _json(FORMAT))
-                self._put(db, "meta", ("config",), _json(self.config))
-
-    def _has_data(self) -> str | None:
-        """A short description of what the file at path holds, or None if nothing."""
-        if not self.path.exists() or self.path.stat().st_size == 0:
-            return None
-        try:
-            db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
             try:
-                rows = db.execute("SELECT count(*) FROM episode").fetchone()[0]
-                done = db.execute("SELECT count(*) FROM record").fetchone()[0]
-            finally:
-                db.close()
-        except sqlite3.DatabaseError:
-            return "a file that is not a readable run"
+                with signals_held():  # (an interrupt waits for the creation, as for a commit)
+                    create_atomically(path, self._fill)
+            except (sqlite3.DatabaseError, OSError) as error:
+                raise self._write_error(error) from None
+        self._connect()
+
+    def _fill(self, db: sqlite3.Connection) -> None:
+        """The tables and ``meta`` rows of a new store (inside its one transaction)."""
+        for statement in filter(str.strip, SCHEMA.split(";")):
+            db.execute(statement)
+        self._put(db, "meta", ("format",), _json(FORMAT))
+        self._put(db, "meta", ("config",), _json(self.config))
+        self._put(db, "meta", ("commits",), _json(0))
+
+    def _has_data(self) -> tuple[str | None, bool]:
+        """A short description of what the store at path holds (None if nothing), and whether
+        it lost committed rows. Opened for writing (the lock is held): a hot journal or log
+        left by a killed writer is recovered before the store is judged."""
+        try:
+            lost = lost_rows_error(self.path, *self._count(self.path)) is not None
+        except (CorruptRunError, sqlite3.DatabaseError, ValueError, RecursionError):
+            return "a file that is not a readable run", False
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            return ("a store that lost its file", True) if lost else (None, False)
+        rows, done = self._count(self.path, "record")
+        if lost:
+            return "a run that lost committed rows", True
         if rows == 0 and done == 0:
-            return None  # nothing bought yet: nothing to lose
-        return f"{rows} bought episode rows, {done} completed iterations"
+            return None, False  # nothing bought yet (or a store with no tables): nothing to lose
+        return f"{rows} bought episode rows, {done} completed iterations", False
+
+    @staticmethod
+    def _count(path: Path, what: str = "commits") -> tuple[int, int]:
+        """(commits, episode rows), or with ``what="record"`` (episode rows, records), of the
+        store at ``path`` (a missing file or table counts 0), opened for writing."""
+        if not path.exists() or path.stat().st_size == 0:
+            return 0, 0
+        db = sqlite3.connect(path)
+        try:
+            names = {r[1] for r in db.execute("SELECT type, name FROM sqlite_master")}
+
+            def count(table: str) -> int:
+                if table not in names:
+                    return 0
+                return db.execute(f"SELECT count(*) FROM {table}").fetchone()[0]
+
+            if what == "record":
+                return count("episode"), count("record")
+            commits = 0
+            if "meta" in names:
+                row = db.execute("SELECT value FROM meta WHERE key = 'commits'").fetchone()
+                commits = 0 if row is None else int(_unjson(row[0]))
+            return commits, count("episode")
+        finally:
+            db.close()
 
     @staticmethod
     def normalise(config: dict) -> dict:
@@ -213,7 +207,6 @@ class RunStore:
             self._db = db
             db.execute("PRAGMA journal_mode=WAL")
             db.execute("PRAGMA synchronous=FULL")
-            db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as error:
             raise self._write_error(error) from None
         refuse_symlinks(self.path)
@@ -229,17 +222,21 @@ class RunStore:
         if self._db is None:
             raise StoreWriteError(f"the run {self.path} is closed")
         with signals_held():
+            db = self._db
             try:
-                self._db.execute("BEGIN IMMEDIATE")
+                db.execute("BEGIN IMMEDIATE")
                 try:
-                    yield self._db
-                    self._db.execute("COMMIT")
+                    yield db
+                    commits = self._commits + 1
+                    self._put(db, "meta", ("commits",), _json(commits))
+                    rows = db.execute("SELECT count(*) FROM episode").fetchone()[0]
+                    db.execute("COMMIT")
                 except BaseException:
-                    # (a signal handler that was pending before the mask may raise after COMMIT:
-                    # then there is nothing to roll back, and the interrupt goes on as such)
-                    if self._db.in_transaction:
-                        self._db.execute("ROLLBACK")
+                    if db.in_transaction:
+                        db.execute("ROLLBACK")
                     raise
+                self._commits = commits
+                write_counter(self.path, commits, rows)
             except (sqlite3.DatabaseError, OSError) as error:
                 raise self._write_error(error) from None
 
@@ -305,69 +302,13 @@ class RunStore:
 
     # -- reading ----------------------------------------------------------------------------
 
+    # -- reading ----------------------------------------------------------------------------
+
     @staticmethod
     def read(path: str | os.PathLike) -> StoredRun:
-        """Read and verify a stored run (every digest, sizes, the format).
+        """Read and verify a stored run (every digest, sizes, the format, the commit counter).
 
         Raises:
             CorruptRunError: naming the path and what failed.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise CorruptRunError(f"no run is stored at {path}")
-        try:
-            return RunStore._read(path)
-        except CorruptRunError:
-            raise
-        except (sqlite3.DatabaseError, ValueError, KeyError, TypeError, UnicodeError) as error:
-            raise CorruptRunError(
-                f"cannot read the run {path}: {type(error).__name__}: {error}"
-            ) from None
-
-    @staticmethod
-    def _read(path: Path) -> StoredRun:
-        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        try:
-            check = db.execute("PRAGMA quick_check").fetchall()
-            if check != [("ok",)]:
-                raise CorruptRunError(f"the run {path} fails SQLite's check: {check[:3]}")
-
-            def rows(sql):
-                return db.execute(sql).fetchall()
-
-            meta = {}
-            for key, value, digest in rows("SELECT key, value, digest FROM meta"):
-                if _digest("meta", (key,), value) != digest:
-                    raise CorruptRunError(f"the run {path}: checksum mismatch in meta {key!r}")
-                meta[key] = _unjson(value)
-            if meta.get("format") != FORMAT:
-                raise CorruptRunError(
-                    f"the run {path} has format {meta.get('format')!r}, not {FORMAT} "
-                    "(written by another version of torch_api?)"
-                )
-            stored = StoredRun(config=meta["config"])
-            for it, value, free, digest in rows(
-                "SELECT iteration, value, free, digest FROM selection ORDER BY iteration"
-            ):
-                if _digest("selection", (it,), value, free) != digest:
-                    raise CorruptRunError(f"the run {path}: checksum mismatch in selection {it}")
-                stored.selections[it] = _unjson(value)
-                if free is not None:
-                    stored.free[it] = decode_tensordict(free)
-            for it, m, value, digest in rows(
-                "SELECT iteration, episode, value, digest FROM episode ORDER BY iteration, episode"
-            ):
-                if _digest("episode", (it, m), value) != digest:
-                    raise CorruptRunError(
-                        f"the run {path}: checksum mismatch in episode {m} of iteration {it}"
-                    )
-                stored.episodes.setdefault(it, {})[m] = decode_tensordict(value)
-            for it, value, digest in rows(
-                "SELECT iteration, value, digest FROM record ORDER BY iteration"
-            ):
-                if _digest("record", (it,), value) != digest:
-                    raise CorruptRunError(f"the run {path}: checksum mismatch in record {it}")
-                stored.records[it] = _unjson(value)
-            return stored
-        finally:
-            db.close()
+        return read_run(path)
