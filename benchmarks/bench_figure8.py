@@ -151,16 +151,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, nargs="+", default=[100, 1000, 10000])
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--startup-repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None, help="also write the table as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(machine_info())
-    startup = startup_seconds()
+    startup = startup_seconds(args.startup_repeats)
     words, calls = count_draws(10)
     rows = []
-    header = f"{'trials':>7} {'wall s':>8} {'compute s':>10} {'start-up s':>11} "
-    header += f"{'rng floor s':>12} {'algebra floor s':>16} {'peak RSS MB':>12}"
-    print(header)
+    print(
+        "| trials | wall s | compute s | start-up s | rng floor s | algebra floor s | peak RSS MB |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|")
     for trials in args.trials:
         with tempfile.TemporaryDirectory() as out:
             run = run_cli(trials, args.threads, Path(out))
@@ -173,8 +175,8 @@ def main() -> None:
         }
         rows.append(row)
         print(
-            f"{trials:>7} {row['wall_s']:>8.1f} {row['compute_s']:>10.1f} {startup:>11.1f} "
-            f"{row['rng_floor_s']:>12.2f} {row['algebra_floor_s']:>16.2f} {row['rss_mb']:>12.0f}"
+            f"| {trials:,} | {row['wall_s']:.1f} | {row['compute_s']:.1f} | {startup:.1f} | "
+            f"{row['rng_floor_s']:.2f} | {row['algebra_floor_s']:.2f} | {row['rss_mb']:.0f} |"
         )
     if len(rows) > 1:
         first, last = rows[0], rows[-1]

@@ -10,12 +10,12 @@ import sqlite3
 import subprocess
 import sys
 import textwrap
-import warnings
 from pathlib import Path
 
 import pytest
 import torch
 
+import torch_api.solve
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
 from torch_api.criterion import j_eq46
@@ -190,15 +190,19 @@ def test_env_parameters_are_part_of_the_settings(tmp_path):
         _api(path, resume=True, env=Slippery)
 
 
-def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path):
+def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monkeypatch):
     path = tmp_path / "run.db"
     api = _api(path, mode="passive", env=_CountingChain)
-    api.lam = 1e-300  # a fit that fails (such a λ is refused by the constructor)
+
+    def no_factor(matrix, lam):  # the factorisation fails, as on a rank-deficient design
+        raise ValueError(f"A + λI is not positive definite (λ = {lam})")
+
+    # (a λ small enough to fail on a few samples, below 1e-10, is refused by the constructor)
+    monkeypatch.setattr(torch_api.solve, "_cholesky", no_factor)
     with pytest.raises(ValueError, match="not positive definite"):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            api.run()  # bought, then the fit fails
+        api.run()  # bought, then the fit fails
     api.close()
+    monkeypatch.undo()
     assert len(RunStore.read(path).episodes[1]) == 3  # the bought rewards are stored
     before = _CountingChain.measured
     resumed = _api(path, mode="passive", resume=True, device="cpu", env=_CountingChain)
