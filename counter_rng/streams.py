@@ -35,6 +35,7 @@ from counter_rng.philox import MASK32, _rounds, key_schedule, philox4x32_int
 __all__ = ["CounterStreams", "KEY_BITS", "derive_key", "derive_keys", "fresh_key"]
 
 KEY_BITS = 63  # keys fit a signed 64-bit integer (SQLite, JSON, torch.int64)
+AHEAD_WORDS = 1 << 17  # at most this many words of draws computed ahead of their use
 _DERIVE = 0x6B657973  # the counter's last word when keys are derived ("keys"), never a draw's
 _TWO_PI = 2.0 * math.pi
 
@@ -106,6 +107,9 @@ class CounterStreams:
         self.keys = keys
         self.calls = int(calls)
         self._schedules: dict[torch.device, torch.Tensor] = {}
+        # draws computed ahead: (shape, device, first call, words [k, S, per stream])
+        self._ahead: tuple | None = None
+        self._run = 1  # how many draws of the same shape to compute at once next time
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -113,7 +117,7 @@ class CounterStreams:
     def __repr__(self) -> str:
         return f"CounterStreams({len(self)} streams, calls={self.calls})"
 
-    def __getstate__(self) -> dict:
+    def __getstate__(self) -> dict:  # what was computed ahead is not part of the state
         return {"keys": self.keys, "calls": self.calls}
 
     def __setstate__(self, state: dict) -> None:
@@ -134,7 +138,12 @@ class CounterStreams:
         return self._schedules[device]
 
     def _words(self, shape: Sequence[int], device) -> torch.Tensor:
-        """The next draw's 32-bit words, int64 of ``shape`` (rows split over the streams)."""
+        """The next draw's 32-bit words, int64 of ``shape`` (rows split over the streams).
+
+        Runs of draws of one shape (an env's steps, a policy's actions) are computed several at
+        a time (up to :data:`AHEAD_WORDS` words): draw c's words are the same function of
+        (key, c) either way, only the number of tensor operations per draw falls.
+        """
         shape = torch.Size(shape)
         device = torch.device("cpu" if device is None else device)
         streams = len(self)
@@ -143,13 +152,31 @@ class CounterStreams:
             raise ValueError(f"{rows} rows do not split into {streams} equal blocks (streams)")
         per_stream = shape.numel() // streams
         call, self.calls = self.calls, self.calls + 1
-        quads = -(-per_stream // 4)
-        j = torch.arange(quads, dtype=torch.int64, device=device).expand(streams, quads)
-        x02 = torch.stack([torch.full_like(j, call & MASK32), j])  # (c2, c0)
-        x13 = torch.stack([torch.zeros_like(j), torch.full_like(j, (call >> 32) & MASK32)])
-        words = _rounds(x02, x13, self._schedule(device))  # [4, S, q]
-        words = words.permute(1, 2, 0).reshape(streams, 4 * quads)[:, :per_stream]
-        return words.reshape(shape)
+        ahead = self._ahead
+        if ahead is not None and ahead[:2] == (shape, device):
+            offset = call - ahead[2]
+            if 0 <= offset < len(ahead[3]):
+                return ahead[3][offset].reshape(shape)
+            self._run = min(2 * self._run, max(1, AHEAD_WORDS // max(shape.numel(), 1)))
+        else:
+            self._run = 1
+        words = self._draws(call, self._run, per_stream, device)  # [k, S, per stream]
+        self._ahead = (shape, device, call, words)
+        return words[0].reshape(shape)
+
+    def _draws(self, call: int, count: int, per_stream: int, device) -> torch.Tensor:
+        """The words of draws ``call … call + count - 1``: ``[count, S, per_stream]``."""
+        streams, quads = len(self), -(-per_stream // 4)
+        calls = torch.arange(call, call + count, dtype=torch.int64, device=device)
+        shape = (count, streams, quads)
+        j = torch.arange(quads, dtype=torch.int64, device=device).expand(shape)
+        c2 = (calls & MASK32).reshape(count, 1, 1).expand(shape)
+        c3 = (calls >> 32).reshape(count, 1, 1).expand(shape)
+        x02 = torch.stack([c2, j])  # (c2, c0)
+        x13 = torch.stack([torch.zeros_like(j), c3])  # (c1, c3)
+        schedule = self._schedule(device).unsqueeze(2)  # [rounds, 2, 1, S, 1]
+        words = _rounds(x02, x13, schedule)  # [4, k, S, q]
+        return words.permute(1, 2, 3, 0).reshape(count, streams, 4 * quads)[..., :per_stream]
 
     def uniform(self, shape: Sequence[int], *, device=None) -> torch.Tensor:
         """float64 uniforms in (0, 1) of ``shape``: ``(w + 0.5) / 2**32``."""

@@ -60,6 +60,18 @@ def test_a_draw_is_the_documented_function_of_key_and_counter():
     assert torch.equal(u, (w.double() + 0.5) / 2**32)
 
 
+def test_draws_computed_ahead_are_the_draws_made_one_at_a_time():
+    """A run of same-shape draws (computed several at a time), interrupted by another shape,
+    equals each draw made alone at its counter."""
+    keys = [5, 6, 7]
+    streams = CounterStreams(keys)
+    shapes = [(3, 4)] * 9 + [(6,)] + [(3, 4)] * 5
+    for call, shape in enumerate(shapes):
+        alone = CounterStreams(keys, calls=call)._words(shape, None)
+        assert torch.equal(streams._words(shape, None), alone), call
+    assert streams.calls == len(shapes)
+
+
 def test_derived_keys_vectorised_equal_scalar():
     keys = derive_keys(torch.tensor([0, 1, 2**62]), torch.tensor([4, 5, 6]), 7, 8)
     assert keys.tolist() == [
