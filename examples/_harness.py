@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 # the harness is the examples' one entry: the numbers' and the durable runs' parts re-exported
+from _cli import use_threads
 from _durable import durable_runs, folder_held, stored_runs_error  # noqa: F401
 from _results import (  # noqa: F401
     COLUMNS,
@@ -208,10 +209,7 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
     does not travel).
     """
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # quiet storage-creation notices
-    if args.threads > 0:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    use_threads(args)
     out = Path(args.out_dir)
     backend, chunks = getattr(args, "backend", "local"), getattr(args, "chunks", 1)
     runs = [(name, method) for name in experiment.schedules for method in METHODS]

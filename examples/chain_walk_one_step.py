@@ -21,11 +21,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import SelectionOptions, field, not_here, parse
+from _cli import SelectionOptions, ThreadOptions, field, not_here, parse, use_threads
 
 
 @dataclass
-class Args(SelectionOptions):
+class Args(SelectionOptions, ThreadOptions):
     """Command-line arguments of the one-step experiment."""
 
     trials: int = field(100, low=1, help="independent trials (the paper: 100)")
@@ -252,6 +252,7 @@ def plot_boxes(results: dict, path: Path) -> None:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    use_threads(args)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()

@@ -36,11 +36,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import SelectionOptions, field, not_here, parse
+from _cli import SelectionOptions, ThreadOptions, field, not_here, parse, use_threads
 
 
 @dataclass
-class Args(SelectionOptions):
+class Args(SelectionOptions, ThreadOptions):
     """Command-line arguments of the TorchRL pipeline example."""
 
     repeats: int = field(2, low=1, help="Z, J-values averaged into J'")
@@ -162,13 +162,14 @@ def mean_return(policy, env, steps: int, exploration: ExplorationType) -> float:
 
 def run_config(args: Args) -> dict:
     """The settings that give the stored run its meaning (a resume must match them)."""
-    skip = ("out_dir", "resume", "overwrite")
+    skip = ("out_dir", "resume", "overwrite", "threads")  # threads change no number
     settings = {k: v for k, v in dataclasses.asdict(args).items() if k not in skip}
     return settings | {"schedule": [args.episodes] * args.iterations}
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    use_threads(args)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     out = Path(args.out_dir)
     path, outputs = out / STORE, [out / "torchrl_pipeline.json"]
