@@ -128,8 +128,8 @@ from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from envs.chain_walk.exact import expected_discounted_return
 from envs.chain_walk.model import GAMMA, N_ACTIONS, chain_walk_model, optimal_policy
 from torch_api.basis import GaussianActionBasis
-from torch_api.data import REWARD_KEY, collect_episodes
-from torch_api.policies import LinearQPolicy, TabularPolicy
+from torch_api.policies import LinearQPolicy
+from torch_api.policy_base import sample_actions
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 MEASURES = ("test_return", "exact_return", "percent_optimal")
@@ -141,11 +141,6 @@ def env_factory(run_seed: int, role: int, device: str = "cpu"):
     return lambda batch: ChainWalkEnv(
         batch_size=batch, seed=harness.derived_seed(run_seed, role, batch), device=device
     )
-
-
-def state_index(obs: torch.Tensor) -> torch.Tensor:
-    """Chain-walk observation (the state number 1 … 10) -> table row 0 … 9."""
-    return obs[..., 0].round().long() - 1
 
 
 def optimal_return(horizon: int) -> float:
@@ -180,11 +175,18 @@ def make_evaluator(args: Args, trials: int):
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
         env.set_block_seeds(derive_keys(policy.counter_streams.keys, _ROLE_TEST))
         table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
-        # The same policy as a table over the 10 states (and the same streams): its test
-        # episodes gather pi(·|s) instead of evaluating the basis at every step.
-        tabular = TabularPolicy(table=table, state_index=state_index, streams=policy.streams)
-        episodes = collect_episodes(env, tabular, num_episodes=m, num_steps=n, rewarded=True)
-        reward = episodes[REWARD_KEY].to(torch.float64) * episodes["mask"]  # [T, m, n]
+        # The same policy as a table over the 10 states, sampling from its streams, on the
+        # env's own dynamics without TorchRL's per-step machinery (env.walk: the numbers of a
+        # rollout, tested): pi(·|s) of every row is a gather, not the basis at every step.
+        rows = table.repeat_interleave(m, 0)  # [T·m, S, A]: trial t's table on its m rows
+        streams = policy.streams
+
+        def choose(state: torch.Tensor) -> torch.Tensor:
+            probs = rows.gather(1, (state - 1).reshape(-1, 1, 1).expand(-1, 1, rows.shape[-1]))
+            return sample_actions(probs.squeeze(1), streams)
+
+        _, reward = env.walk(choose, n)
+        reward = reward.to(torch.float64).reshape(trials, m, n)
         test_return = (reward * discounts).sum(-1).mean(-1)  # eq. 61, [T]
         exact = expected_discounted_return(P, R, table, model.initial, GAMMA, n)  # [T]
         return {

@@ -506,3 +506,38 @@ def test_bad_inputs_raise_value_errors_naming_the_argument(model):
     for make, name in cases:
         with pytest.raises(ValueError, match=name):
             make()
+
+
+def test_walk_draws_the_numbers_of_a_rollout():
+    """``env.walk`` (no TorchRL machinery) gives the states and rewards of ``env.rollout``
+    with the same policy and streams, bit for bit."""
+    from counter_rng import CounterStreams
+    from torch_api.collect import collect_episodes
+    from torch_api.policies import TabularPolicy
+    from torch_api.policy_base import sample_actions
+
+    trials, m, n = 3, 4, 12
+    table = torch.rand(
+        trials, 10, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64
+    )
+    table = table / table.sum(-1, keepdim=True)
+    keys = [11, 12, 13]
+
+    def state_index(obs):
+        return obs[..., 0].round().long() - 1
+
+    env = ChainWalkEnv(batch_size=trials * m)
+    env.set_block_seeds([21, 22, 23])
+    policy = TabularPolicy(table=table, state_index=state_index, streams=CounterStreams(keys))
+    episodes = collect_episodes(env, policy, num_episodes=m, num_steps=n, rewarded=True)
+    env.set_block_seeds([21, 22, 23])
+    rows, streams = table.repeat_interleave(m, 0), CounterStreams(keys)
+
+    def choose(state):
+        return sample_actions(rows[torch.arange(len(state)), state - 1], streams)
+
+    states, rewards = env.walk(choose, n)
+    assert torch.equal(states[:, :-1].reshape(trials, m, n), episodes["observation"][..., 0].long())
+    assert torch.equal(
+        rewards.reshape(trials, m, n), episodes["next", "reward"].reshape(trials, m, n)
+    )

@@ -154,7 +154,7 @@ class ChainWalkEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size
-        state = self.streams.integers(1, self.n_states + 1, (*shape, 1)).to(self.device)
+        state = self._initial_states().unsqueeze(-1)
         out = {"observation": state.to(torch.float32)}
         if self.max_steps is not None:
             out["step_count"] = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
@@ -186,6 +186,43 @@ class ChainWalkEnv(EnvBase):
             raise ValueError(f"action indices must be 0 ('L') or 1 ('R'), got {action.unique()}")
         return action
 
+    def _initial_states(self) -> torch.Tensor:
+        """Uniform initial states ``[*E]`` (long, 1 … S), drawn from the env's streams."""
+        shape = (*self.batch_size, 1)
+        return self.streams.integers(1, self.n_states + 1, shape).to(self.device).squeeze(-1)
+
+    def _transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Next states ``[*E]`` of states and action indices ``[*E]`` (one uniform per row
+        from the env's streams: the intended move succeeds with ``success_prob``)."""
+        intended = 2 * action - 1  # 'L' -> -1, 'R' -> +1
+        success = self.streams.uniform(self.batch_size).to(self.device) < self.success_prob
+        move = torch.where(success, intended, -intended)
+        return (state + move).clamp(1, self.n_states)
+
+    def walk(self, choose, num_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Episodes of ``num_steps`` steps without TorchRL's rollout machinery: exactly the
+        draws and the numbers of ``reset()`` followed by ``num_steps`` calls of ``step()``
+        with the actions ``choose(states [*E] long) -> [*E]`` (action indices).
+
+        For evaluating many policies fast (no TensorDict per step, nothing stored but the
+        states and rewards). Returns the states ``[*E, N + 1]`` (long) and the rewards
+        ``[*E, N]`` (float32, as ``step`` gives them).
+
+        Example:
+            >>> env = ChainWalkEnv(batch_size=3, seed=0)
+            >>> states, rewards = env.walk(lambda s: torch.ones_like(s), 4)  # always 'R'
+            >>> states.shape, rewards.shape
+            (torch.Size([3, 5]), torch.Size([3, 4]))
+        """
+        state = self._initial_states()
+        states, rewards = [state], []
+        for _ in range(num_steps):
+            action = torch.as_tensor(choose(state), device=self.device).long()
+            state = self._transition(state, action)
+            states.append(state)
+            rewards.append(self._f32[state - 1])
+        return torch.stack(states, -1), torch.stack(rewards, -1)
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = self.batch_size
         state = tensordict["observation"].reshape(shape).round().long()
@@ -193,11 +230,7 @@ class ChainWalkEnv(EnvBase):
             raise ValueError(
                 f"observation must hold state numbers 1 … {self.n_states}, got {state.unique()}"
             )
-        action = self._action_indices(tensordict["action"])
-        intended = 2 * action - 1  # 'L' -> -1, 'R' -> +1
-        success = self.streams.uniform(shape).to(self.device) < self.success_prob
-        move = torch.where(success, intended, -intended)
-        next_state = (state + move).clamp(1, self.n_states)
+        next_state = self._transition(state, self._action_indices(tensordict["action"]))
         out = {
             "observation": next_state.to(torch.float32).unsqueeze(-1),
             "reward": self._f32[next_state - 1].unsqueeze(-1),
