@@ -25,6 +25,7 @@ from envs.batting import (
     BattingEnv,
     BattingGymEnv,
     BattingSimulator,
+    PhysicsHook,
     flight_carry,
 )
 
@@ -281,6 +282,40 @@ def test_margin_finds_every_contact_a_wide_margin_finds():
     # (0.055 m measured; the scheme's own carry error against a 4x finer step is 0.09 m mean)
     assert np.median(np.abs(carry - wide_carry)[both]) < 0.15
     assert fine < 0.8 * wide_fine
+
+
+def test_gap_bound_skips_only_intervals_that_are_far():
+    """The near intervals equal those of evaluating the predicted gap at every point of every
+    interval: the lower bound (gap at the start less the bat's reach times its turn) only
+    skips intervals whose every point is beyond the margin."""
+
+    class Compare(PhysicsHook):
+        near = full = 0
+
+        def on_step_start(self, sim, states):
+            rows = np.flatnonzero(sim.in_play & ~sim.hit)
+            qpos, qvel = sim._qpos(states[rows]), sim._qvel(states[rows])
+            knots = np.stack(
+                [qpos[:, :-1, :2], qvel[:, :-1, :2] * sim.coarse_dt, qpos[:, 1:, :2]]
+                + [qvel[:, 1:, :2] * sim.coarse_dt],
+                axis=2,
+            )
+            arm = sim._hermite @ knots
+            ball = 0.5 * (qpos[:, :-1, None, 2:5] + qpos[:, 1:, None, 2:5])
+            expected = sim.bat_ball_gap(arm[..., 0], arm[..., 1], ball).min(-1) < sim.margin
+            got = sim._near_intervals(states)[rows]
+            np.testing.assert_array_equal(got, expected)
+            self.near += int(expected.sum())
+            self.full += expected.size
+
+    hook = Compare()
+    rng = np.random.default_rng(7)
+    sim = BattingSimulator(num_envs=64, nthread=1, hook=hook)
+    sim.reset()
+    for _ in range(MAX_STEPS):
+        torque = np.asarray(ACTION_TORQUES)[rng.integers(0, 2, 64)] + rng.normal(0, 1.7, (64, 2))
+        sim.step(torque)
+    assert 0 < hook.near < hook.full
 
 
 def test_same_seed_same_episode_different_seed_differs():

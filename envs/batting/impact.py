@@ -81,9 +81,24 @@ class ImpactWindow:
                 axis=2,
             )
             arm = self._hermite @ knots
-            ball = 0.5 * (qpos[:, :-1, None, 2:5] + qpos[:, 1:, None, 2:5])  # at rest
-            gap = self.bat_ball_gap(arm[..., 0], arm[..., 1], ball).min(axis=-1)
-            near[rows] = gap < self.margin
+            ball = 0.5 * (qpos[:, :-1, 2:5] + qpos[:, 1:, 2:5])  # at rest, [E', n, 3]
+            # Most intervals are far from the ball: a lower bound of the gap at every point,
+            # the gap at the interval's start less the most any bat point can move in it,
+            # leaves only the rest to evaluate point by point (the same points, the same gaps).
+            start = arm[:, :, 0]  # [E', n, 2]
+            turn1 = np.abs(arm[..., 0] - start[..., None, 0]).max(-1)  # the shoulder's turn
+            turn_bat = np.abs(
+                (arm[..., 0] - arm[..., 1]) - (start[..., None, 0] - start[..., None, 1])
+            ).max(-1)  # the bat's turn in the world (phi1 - phi2)
+            reach = self._elbow_reach * turn1 + self._bat_reach * turn_bat
+            bound = self.bat_ball_gap(start[..., 0], start[..., 1], ball) - reach
+            check = bound < self.margin  # [E', n]
+            if check.any():
+                points = arm[check]  # [C, points, 2]
+                gap = self.bat_ball_gap(points[..., 0], points[..., 1], ball[check][:, None])
+                near[rows[np.nonzero(check)[0]], np.nonzero(check)[1]] = (
+                    gap.min(axis=-1) < self.margin
+                )
         near[self.in_play & self.hit] = True  # a hit ball still touching the bat
         return near
 

@@ -157,6 +157,10 @@ class BattingSimulator(ImpactWindow):
                 raise ValueError("the bat must consist of capsules along its body's z axis")
             lo, hi = geom.pos[2] - geom.size[1], geom.pos[2] + geom.size[1]
             self._capsules.append((float(lo), float(hi), float(geom.size[0])))
+        # how far a bat point can be from the elbow, and the elbow from the shoulder (m): a
+        # turn of the bat by d (rad) moves no bat point more than _bat_reach * d, and so on
+        self._bat_reach = max(max(abs(lo), abs(hi)) + radius for lo, hi, radius in self._capsules)
+        self._elbow_reach = float(np.linalg.norm(self._elbow_offset))
         self.ball_radius = float(model.geom("ball").size[0])  # (m)
         self.gravity = float(-model.opt.gravity[2])  # (m/s^2)
         pin = model.geom("pin")
