@@ -37,6 +37,19 @@ __all__ = ["BattingSimulator"]
 
 _SENSORS = ("bat_ball_dist", "bat_ball_contact", "pin_ball_contact")
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+_OFF = mujoco.mjtDisableBit
+# What the coarse steps leave out: contacts and sensors (see BattingSimulator), and passes that
+# compute nothing in this model (no friction loss, no damping, no collisions to filter): the
+# same numbers to the bit, about 13 % less time per coarse step (measured). Not springs and
+# dampers together: MuJoCo then skips its passive forces, the ball's gravity compensation too.
+_COARSE_OFF = (
+    _OFF.mjDSBL_CONTACT
+    | _OFF.mjDSBL_SENSOR
+    | _OFF.mjDSBL_FRICTIONLOSS
+    | _OFF.mjDSBL_EULERDAMP
+    | _OFF.mjDSBL_FILTERPARENT
+    | _OFF.mjDSBL_MIDPHASE
+)
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
     "rk4": mujoco.mjtIntegrator.mjINT_RK4,
@@ -122,9 +135,7 @@ class BattingSimulator(ImpactWindow):
         # whenever it is stepped coarsely. So the coarse model freezes the ball instead of
         # resolving its pin or ground contact at every RK4 stage (about 40 % of a step's cost):
         # contacts and sensors are off and the ball's weight is compensated.
-        self.coarse_model.opt.disableflags |= (
-            mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_SENSOR
-        )
+        self.coarse_model.opt.disableflags |= _COARSE_OFF
         self.fine_model = mujoco.MjModel.from_xml_path(str(xml_path))
         self.fine_model.opt.timestep = self.fine_dt
         model = self.fine_model
