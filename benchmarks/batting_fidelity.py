@@ -38,6 +38,8 @@ class Args:
     baseline: str | None = None  # another envs/batting.py whose scheme is compared too
     nthread: int | None = None  # MuJoCo threads (None: all cores)
     skip_uniform_fine: bool = False  # leave out the uniform run at the scheme's fine step
+    margins: str = ""  # comma-separated margins (m) of extra scheme runs, e.g. "0.05" (before)
+    reference: str | None = None  # an .npz of the reference run: read if it exists, else written
 
 
 def all_sequences(n_steps: int = MAX_STEPS) -> np.ndarray:
@@ -60,11 +62,14 @@ def run_sequences(seqs: np.ndarray, simulator: type = BattingSimulator, **sim_kw
     sim.reset()
     torques = np.asarray(ACTION_TORQUES)
     hit_step = np.full(len(seqs), -1)
+    obs = [sim.observation()]
     start = time.perf_counter()
     for t in range(seqs.shape[1]):
-        _, _, first_hit = sim.step(torques[seqs[:, t]])
+        ob, _, first_hit = sim.step(torques[seqs[:, t]])
         hit_step[first_hit] = t
+        obs.append(ob)
     return {
+        "obs": np.stack(obs, axis=1),  # [S, N + 1, 4] observed states (eq. 62)
         "carry": sim.carry.copy(),
         "hit": sim.hit.copy(),
         "hit_step": hit_step,
@@ -74,11 +79,27 @@ def run_sequences(seqs: np.ndarray, simulator: type = BattingSimulator, **sim_kw
     }
 
 
+def load_reference(path: str | None, ref_dt: float) -> dict | None:
+    """The reference run stored at ``path`` by an earlier invocation (None if absent)."""
+    if not path or not Path(path).exists():
+        return None
+    with np.load(path) as stored:
+        ref = {key: stored[key] for key in stored.files}
+    if abs(float(ref.pop("ref_dt")) - ref_dt) > 1e-12:
+        raise ValueError(f"{path} holds a reference of another step than {ref_dt} s")
+    ref["seconds"] = float(ref["seconds"])
+    return ref
+
+
 def compare(run: dict, ref: dict) -> dict:
     """Agreement and carry error of ``run`` against ``ref`` (both from :func:`run_sequences`)."""
     both = run["hit"] & ref["hit"]
     err = np.abs(run["carry"] - ref["carry"])[both]
+    # the observed states: each sequence's largest error over its steps, per state dimension
+    state_err = np.abs(run["obs"] - ref["obs"]).max(axis=1)  # [S, 4]
     return {
+        "state_err_p95": np.quantile(state_err, 0.95, axis=0).tolist(),
+        "state_err_max": state_err.max(axis=0).tolist(),
         "hits": int(run["hit"].sum()),
         "hit_agreement": int((run["hit"] == ref["hit"]).sum()),
         "hit_step_agreement": int((run["hit_step"] == ref["hit_step"]).sum()),
@@ -99,12 +120,20 @@ def main(args: Args) -> dict:
         baseline = load_baseline(args.baseline)
         runs["baseline scheme"] = run_sequences(seqs, baseline, nthread=args.nthread)
     runs["scheme (adaptive)"] = run_sequences(seqs, nthread=args.nthread)
+    for margin in filter(None, args.margins.split(",")):
+        runs[f"scheme, margin {margin}"] = run_sequences(
+            seqs, nthread=args.nthread, margin=float(margin)
+        )
     if not args.skip_uniform_fine:
         runs[f"uniform {FINE_DT * 1e3:g} ms"] = run_sequences(
             seqs, scheme="uniform", nthread=args.nthread
         )
-    print(f"reference: uniform {ref_dt * 1e3:g} ms over {len(seqs)} sequences ...", flush=True)
-    ref = run_sequences(seqs, scheme="uniform", fine_dt=ref_dt, nthread=args.nthread)
+    ref = load_reference(args.reference, ref_dt)
+    if ref is None:
+        print(f"reference: uniform {ref_dt * 1e3:g} ms over {len(seqs)} sequences ...", flush=True)
+        ref = run_sequences(seqs, scheme="uniform", fine_dt=ref_dt, nthread=args.nthread)
+        if args.reference:
+            np.savez(args.reference, ref_dt=ref_dt, **ref)
     rows = {name: compare(run, ref) for name, run in runs.items()}
     rows[f"reference {ref_dt * 1e3:g} ms"] = compare(ref, ref)
 
@@ -122,6 +151,14 @@ def main(args: Args) -> dict:
             f"{r['seconds']:>7.1f}"
         )
     print("carry errors in m, over sequences that hit in both runs")
+    print(
+        f"\n{'run':<22}{'state error (each sequence its worst step) p95 / max':>58}\n{'':<22}"
+        + "".join(f"{dim:>16}" for dim in ("phi1", "phi1_dot", "phi2", "phi2_dot"))
+    )
+    for name, r in rows.items():
+        cells = zip(r["state_err_p95"], r["state_err_max"], strict=True)
+        print(f"{name:<22}" + "".join(f"{p:>8.4f} /{m:>6.3f}" for p, m in cells))
+    print("state errors in rad and rad/s against the reference")
     result = {"args": asdict(args), "n_sequences": len(seqs), "rows": rows}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -139,6 +176,8 @@ def parse_args(argv: list[str] | None = None) -> Args:
     parser.add_argument("--baseline", default=defaults.baseline)
     parser.add_argument("--nthread", type=int, default=defaults.nthread)
     parser.add_argument("--skip-uniform-fine", action="store_true")
+    parser.add_argument("--margins", default=defaults.margins)
+    parser.add_argument("--reference", default=defaults.reference)
     return Args(**vars(parser.parse_args(argv)))
 
 

@@ -99,25 +99,23 @@ def basis() -> GaussianActionBasis:
     return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2)
 
 
-def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=8)
+def run_arguments(doc: str, *, trials: int, audit: float, out: str) -> argparse.Namespace:
+    """The command line of a timed active batting run (this script's, bench_batting_iteration's)."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    parser.add_argument("--trials", type=int, default=trials)
     parser.add_argument("--iterations", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--nthread", type=int, default=2, help="MuJoCo threads of the env")
-    parser.add_argument("--audit", type=float, default=0.05, help="rollouts sampled for replay")
-    parser.add_argument("--out", default="results/profile_batting.json")
+    parser.add_argument("--audit", type=float, default=audit, help="rollouts sampled for replay")
+    parser.add_argument("--out", default=out)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    envs: list[BattingEnv] = []
-    audit = PhysicsAudit(args.audit, seed=0)
+    return args
 
-    def make(rows: int) -> BattingEnv:
-        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, hook=audit))
-        return envs[-1]
 
-    instrument()
-    api = ActivePolicyIteration(
+def active_run(args: argparse.Namespace, make) -> ActivePolicyIteration:
+    """The active run timed: 'decreasing', Z = 5, K = 4, the paper's basis; envs from ``make``."""
+    return ActivePolicyIteration(
         env=make,
         selector=SamplingPolicySelector(env=make),
         basis=basis(),
@@ -128,6 +126,19 @@ def main() -> dict:
         num_trials=args.trials,
         keep_reward_free=False,
     )
+
+
+def main() -> dict:
+    args = run_arguments(__doc__, trials=8, audit=0.05, out="results/profile_batting.json")
+    envs: list[BattingEnv] = []
+    audit = PhysicsAudit(args.audit, seed=0)
+
+    def make(rows: int) -> BattingEnv:
+        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, hook=audit))
+        return envs[-1]
+
+    instrument()
+    api = active_run(args, make)
     start = time.perf_counter()
     api.run()
     wall = time.perf_counter() - start

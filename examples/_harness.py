@@ -53,6 +53,7 @@ from _results import (  # noqa: F401
     read_results,
     write_results,
 )
+from tqdm import tqdm
 
 from torch_api.dispatch import run_chunks, split_trials, trial_seeds
 from torch_api.iteration import ActivePolicyIteration
@@ -84,7 +85,8 @@ class Chunk:
     """indices t of the run's trials in this chunk"""
     store: Path
     """where the chunk's run is stored"""
-    progress: bool = True
+    on_iteration: Callable[[], None] | None = None
+    """called after every iteration the chunk runs (the experiment's progress bar; local only)"""
     on_checkpoint: Callable | None = None
     """called with the run after every commit (the loop's ``on_checkpoint`` hook)"""
 
@@ -131,7 +133,11 @@ def run_iterations(chunk: Chunk, api: ActivePolicyIteration, initial: dict | Non
     elif chunk.args.resume:
         print(f"nothing stored in {chunk.store}: starting it fresh")
     started = time.perf_counter()
-    history = api.run(progress=chunk.progress)
+    for _ in range(api.iteration, len(api.schedule)):
+        api.step()
+        if chunk.on_iteration is not None:
+            chunk.on_iteration()
+    history = api.run()  # nothing left to run: closes the store, returns the whole history
     rows = [rec.row() for rec in history]
     if initial is not None:
         rows.insert(0, {"iteration": 0, "episodes_bought": 0, "rewarded_transitions": 0, **initial})
@@ -223,7 +229,6 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
             seed=experiment.run_seed(args.seed, name),
             trials=list(trials),
             store=store_path(out, experiment, name, method, c, chunks),
-            progress=backend == "local",
             on_checkpoint=on_checkpoint,
         )
         for name, method in runs
@@ -236,15 +241,33 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
     ):
         (out / "checkpoints").mkdir(parents=True, exist_ok=True)
         print(f"{len(plan)} chunks of about {args.trials // chunks} trials ({backend})")
-        started = time.perf_counter()
-        parts = run_chunks(
-            experiment.run_chunk,
-            plan,
-            backend=backend,
-            workers=getattr(args, "workers", 0) or None,
-            address=getattr(args, "ray_address", "") or None,
-            num_cpus=getattr(args, "ray_cpus", 0) or None,
+        # one bar for the whole experiment: every iteration of every chunk, with its ETA
+        total = [len(chunk.schedule) for chunk in plan]
+        bar = tqdm(
+            total=sum(total), desc=f"{experiment.name}, {len(plan)} chunks", unit="iteration"
         )
+        if backend == "local":
+            for chunk in plan:
+                chunk.on_iteration = bar.update
+
+        def chunk_done(i: int, result: dict) -> None:
+            # a worker's chunk moves the bar when it returns; a local one has moved it already
+            # (by its iterations; a resumed chunk's stored ones are added here)
+            bar.update(sum(total[: i + 1]) - bar.n if backend == "local" else total[i])
+
+        started = time.perf_counter()
+        try:
+            parts = run_chunks(
+                experiment.run_chunk,
+                plan,
+                backend=backend,
+                workers=getattr(args, "workers", 0) or None,
+                address=getattr(args, "ray_address", "") or None,
+                num_cpus=getattr(args, "ray_cpus", 0) or None,
+                on_result=chunk_done,
+            )
+        finally:  # before a signal's or an error's last line
+            bar.close()
         results = assemble(experiment, parts, chunks)
         return experiment.report(results, time.perf_counter() - started)
 

@@ -19,6 +19,10 @@ BENCHMARKS = ROOT / "benchmarks"
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
         (["profile_batting.py", "--trials", "1", "--iterations", "1"], "wall / floor (2 threads)"),
         (
+            ["bench_batting_iteration.py", "--trials", "1", "--iterations", "1", "--audit", "1"],
+            "| part / floor | |",
+        ),
+        (
             ["bench_figure10.py", "--trials", "2", "--iterations", "1", "--audit", "0.2"]
             + ["--out-dir", "{tmp}/runs"],
             "| processes (2 workers) |",

@@ -44,6 +44,20 @@ def test_local_backend_keeps_chunk_order():
     assert run_chunks(sum, []) == []
 
 
+@pytest.mark.parametrize("backend", ["local", "processes"])
+def test_on_result_sees_every_chunk_once_with_its_result(backend):
+    """The progress callback: every chunk's index and result, each once, in the caller."""
+    seen = []
+    chunks = [[1, 2], [3], [4, 5, 6], [7]]
+    results = run_chunks(
+        sum, chunks, backend=backend, workers=2, on_result=lambda i, r: seen.append((i, r))
+    )
+    assert results == [3, 3, 15, 7]
+    assert sorted(seen) == [(0, 3), (1, 3), (2, 15), (3, 7)]
+    if backend == "local":
+        assert [i for i, _ in seen] == [0, 1, 2, 3]
+
+
 def test_unknown_backend_is_refused():
     with pytest.raises(ValueError, match="backend must be one of"):
         run_chunks(sum, [[1]], backend="dask")

@@ -17,7 +17,20 @@ from torch_api.data import REWARD_KEY, taken_sample_probs
 from torch_api.psi import PsiHat
 from torch_api.weights import effective_sample_size, per_decision_weights
 
-__all__ = ["Design", "build_design"]
+__all__ = ["CollapsedWeightsWarning", "Design", "build_design"]
+
+
+class CollapsedWeightsWarning(RuntimeWarning):
+    """Importance weights whose effective sample size fell below a fraction of n.
+
+    Attributes (of the data set with the lowest ESS / n): ``ess``, ``n``; and ``collapsed``
+    of ``sets`` data sets collapsed. A program can count these instead of reading the message.
+    """
+
+    def __init__(self, message: str, ess: float, n: int, collapsed: int, sets: int) -> None:
+        super().__init__(message)
+        self.ess, self.n, self.collapsed, self.sets = ess, n, collapsed, sets
+
 
 DEFAULT_MIN_ESS_FRACTION = 0.01  # warn when a data set's effective sample size falls below this
 
@@ -119,11 +132,13 @@ def _warn_on_collapsed_weights(w: torch.Tensor, mask: torch.Tensor, fraction: fl
     if collapsed.any():
         worst = int(torch.argmin(ess / n.clamp_min(1)).item()) if ess.ndim else 0
         flat_ess, flat_n = ess.reshape(-1), n.reshape(-1)
+        ess_w, n_w, count = flat_ess[worst].item(), int(flat_n[worst]), int(collapsed.sum())
+        message = (
+            f"importance weights collapsed: effective sample size {ess_w:.2f} of "
+            f"n = {n_w} samples (below {fraction:.0%}) in {count} of {collapsed.numel()} data "
+            "set(s); the sampling policy is far from the evaluation policy, and a few episodes "
+            "decide the fit"
+        )
         warnings.warn(
-            f"importance weights collapsed: effective sample size {flat_ess[worst].item():.2f} of "
-            f"n = {int(flat_n[worst])} samples (below {fraction:.0%}) in "
-            f"{int(collapsed.sum())} of {collapsed.numel()} data set(s); the sampling policy is "
-            "far from the evaluation policy, and a few episodes decide the fit",
-            RuntimeWarning,
-            stacklevel=3,
+            CollapsedWeightsWarning(message, ess_w, n_w, count, collapsed.numel()), stacklevel=3
         )

@@ -27,7 +27,7 @@ import os
 import signal
 import socket
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
 
 import torch
@@ -117,6 +117,7 @@ def run_chunks(
     address: str | None = None,
     num_cpus: int | None = None,
     runtime_env: dict[str, Any] | None = None,
+    on_result: Callable[[int, R], None] | None = None,
 ) -> list[R]:
     """``[fn(chunk) for chunk in chunks]``, in-process or as Ray tasks; results in chunk order.
 
@@ -134,6 +135,9 @@ def run_chunks(
         num_cpus: Ray only: CPUs of a local instance started here (default: all).
         runtime_env: Ray only: the ``runtime_env`` of ``ray.init`` (e.g.
             ``{"working_dir": "."}`` to ship this checkout to a cluster whose nodes lack it).
+        on_result: called here, in the calling process, as ``on_result(i, result)`` when
+            chunk ``i``'s result arrives (in the order they finish), e.g. to move a progress
+            bar over the whole experiment.
 
     Returns:
         ``[fn(c) for c in chunks]``. A Ray instance started here is shut down afterwards; one
@@ -147,8 +151,13 @@ def run_chunks(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    done = on_result or (lambda i, result: None)
     if backend == "local":
-        return [fn(chunk) for chunk in chunks]
+        results = []
+        for i, chunk in enumerate(chunks):
+            results.append(fn(chunk))
+            done(i, results[-1])
+        return results
     if backend == "processes":
         if not chunks:
             return []
@@ -162,7 +171,11 @@ def run_chunks(
             initargs=(threads_per_worker(workers), os.getpid()),
         )
         try:
-            results = list(pool.map(fn, chunks))
+            futures = {pool.submit(fn, chunk): i for i, chunk in enumerate(chunks)}
+            results = [None] * len(chunks)
+            for future in as_completed(futures):
+                results[futures[future]] = future.result()
+                done(futures[future], results[futures[future]])
         except BaseException:  # interrupted or failed: no worker outlives the call
             processes = list((getattr(pool, "_processes", None) or {}).values())
             for process in processes:
@@ -184,7 +197,14 @@ def run_chunks(
     try:
         task = ray.remote(num_cpus=1)(_guarded_call)
         driver = (os.getpid(), socket.gethostname())
-        return ray.get([task.remote(fn, *driver, chunk) for chunk in chunks])
+        pending = {task.remote(fn, *driver, chunk): i for i, chunk in enumerate(chunks)}
+        results = [None] * len(chunks)
+        waiting = list(pending)
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=1)
+            results[pending[ready[0]]] = ray.get(ready[0])
+            done(pending[ready[0]], results[pending[ready[0]]])
+        return results
     finally:
         if started_here:
             ray.shutdown()
