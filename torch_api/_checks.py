@@ -8,6 +8,7 @@ import warnings
 
 import torch
 
+SLICES = ("all", "episode")  # how rewarded episodes are bought (ActivePolicyIteration)
 HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
 
 
@@ -72,3 +73,49 @@ def _count(name: str, value, minimum: int = 1) -> int:
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
     return int(value)
+
+
+def _check_loop_settings(
+    *,
+    tie_break,
+    schedule,
+    num_steps,
+    knn_k,
+    num_trials,
+    gamma,
+    lam,
+    rewarded_slice,
+    store,
+    psi_mode,
+    fit,
+    collector,
+) -> tuple:
+    """The plain settings of :class:`~torch_api.iteration.ActivePolicyIteration`, checked.
+
+    ``store`` is ``(resume or overwrite, checkpoint_path)``; ``collector`` the loop's or the
+    selector's collector factory, if any. Returns ``(schedule, num_steps, knn_k, num_trials)``
+    normalised.
+    """
+    from torch_api.fit import FITS  # (imported here: _checks is imported by light modules)
+    from torch_api.policies import TIE_BREAKS
+    from torch_api.psi import PSI_MODES
+
+    _check_choice("tie_break", tie_break, TIE_BREAKS)
+    schedule = _check_schedule(schedule)
+    num_steps = _count("num_steps", num_steps)
+    knn_k = _count("knn_k", knn_k)
+    if num_trials is not None:
+        num_trials = _count("num_trials", num_trials)
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+    _check_lambda(lam)
+    _check_choice("rewarded_slice", rewarded_slice, SLICES)
+    if store[0] and store[1] is None:
+        raise ValueError("resume and overwrite need a checkpoint_path")
+    _check_choice("psi_mode", psi_mode, PSI_MODES)
+    _check_choice("fit", fit, FITS)
+    if fit == "lstd" and psi_mode != "single":
+        raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
+    if num_trials is not None and collector:
+        raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+    return schedule, num_steps, knn_k, num_trials

@@ -77,6 +77,7 @@ class RewardBuying:
                 earlier,
                 iteration=l_now,
                 num_episodes=num_episodes,
+                flattening=self.evaluation.flattening_for_j(self.history),
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()

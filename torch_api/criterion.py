@@ -28,6 +28,7 @@ from torch_api.design import build_design
 from torch_api.episodes import as_episodes, joinable
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
+from torch_api.weights import flatten_weights
 
 __all__ = ["Criterion", "PooledMoments", "j_eq46", "j_values", "pooled_moments"]
 
@@ -87,6 +88,7 @@ def j_values(
     lam: float = DEFAULT_LAMBDA,
     *,
     criterion: Criterion = j_eq46,
+    flattening: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """J of every candidate from reward-free episodes (eq. 42-46, Algorithm 2 steps 2-4).
 
@@ -102,11 +104,30 @@ def j_values(
         psi: the psi_hat module.
         lam: λ.
         criterion: ``(PooledMoments, lam) -> [..., K]`` (:data:`Criterion`).
+        flattening: ν of the fit's flattened weights (see :func:`pooled_moments`).
 
     Returns:
         J ``[..., K]`` (float64).
     """
-    return criterion(pooled_moments(candidate_episodes, earlier_episodes, policy, psi), lam)
+    moments = pooled_moments(
+        candidate_episodes, earlier_episodes, policy, psi, flattening=flattening
+    )
+    return criterion(moments, lam)
+
+
+def _per_trial(nu, w: torch.Tensor):
+    """ν (a number, or ``[*T]`` per trial) shaped to broadcast against weights ``[*T, ..., n]``."""
+    if not isinstance(nu, torch.Tensor):
+        return nu
+    return nu.reshape(*nu.shape, *[1] * (w.ndim - nu.ndim))
+
+
+def _flat_moments(x, w, nu):
+    """``Σ w^ν x xᵀ``, ``Σ w^{2ν} x xᵀ`` and the unflattened ``Σ w x xᵀ`` of Ũ (eq. F2)."""
+    w_nu = flatten_weights(w, _per_trial(nu, w))
+    a = weighted_moment(x, w_nu)
+    u = a if w_nu is w else weighted_moment(x, w)
+    return a, weighted_moment(x, w_nu.pow(2)), u
 
 
 def pooled_moments(
@@ -114,6 +135,8 @@ def pooled_moments(
     earlier_episodes: TensorDictBase | None,
     policy,
     psi: PsiHat,
+    *,
+    flattening: float | torch.Tensor = 1.0,
 ) -> PooledMoments:
     """The pooled moments of every candidate from reward-free episodes (eq. 42-45).
 
@@ -131,6 +154,10 @@ def pooled_moments(
         policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
             ``[...]``.
         psi: the psi_hat module.
+        flattening: ν of the flattened weights the fit will use (docs/flattening.md, eq. F2),
+            a number or one per trial ``[*T]`` (the leading dims of the policy's parameters):
+            ``A_k`` takes ``w^ν``, ``C_k`` takes ``w^{2ν}``, while ``Ũ`` keeps w (it measures
+            the error under the evaluation policy). ν = 1: the paper's moments, as before.
 
     Returns:
         :class:`PooledMoments` with ``a``, ``c`` ``[..., K, B, B]``, ``u`` ``[..., 1, B, B]``
@@ -186,20 +213,20 @@ def pooled_moments(
             )
     # Unnormalised moments of each candidate's own rows and of the shared earlier rows; Ũ over
     # D̄_0 is their sum, with no pass of its own.
-    a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
-    c_own = weighted_moment(own_x, own_w.pow(2))
-    a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
+    a_own, c_own, u_own = _flat_moments(own_x, own_w, flattening)  # [..., K, B, B]
+    a_shared = c_shared = u_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
     n_shared = n_own.new_zeros(())
     if shared is not None:
         stretch = [1] * (len(lead) + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
-        a_shared = weighted_moment(shared.x, shared.w)
-        a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
-        c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
+        a_shared, c_shared, u_shared = (
+            m.reshape(*m.shape[:-2], *stretch, *m.shape[-2:])
+            for m in _flat_moments(shared.x, shared.w, flattening)
+        )
         n_shared = shared.num_samples.to(torch.float64)
         n_shared = n_shared.reshape(*n_shared.shape, *stretch)
     n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
     n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
-    u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
+    u_tilde = (u_own.sum(-3) + u_shared) / n_0  # eq. 42 over D̄_0
     a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
     c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
     if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):

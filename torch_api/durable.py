@@ -106,6 +106,7 @@ class DurableState:
             else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
             "fit": self.fit,
         }
+        config |= self.evaluation.settings()  # ν (left out at 1.0: older runs stay resumable)
         return config
 
     def _open_store(self, *, resume: bool, overwrite: bool) -> None:

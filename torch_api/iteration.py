@@ -30,7 +30,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api._checks import _check_choice, _check_lambda, _check_schedule, _count, _initial_theta
+from torch_api._checks import _check_loop_settings, _initial_theta
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import EpisodeBuffer, _warm_start
 from torch_api.buying import RewardBuying
@@ -42,10 +42,11 @@ from torch_api.candidates import (
 )
 from torch_api.collect import EnvPerBatch, rollouts_or
 from torch_api.durable import DurableState
-from torch_api.fit import FITS, fit_theta
-from torch_api.policies import TIE_BREAKS, LinearQPolicy
-from torch_api.psi import PSI_MODES, PsiHat
-from torch_api.records import IterationRecord
+from torch_api.fit import PolicyEvaluation
+from torch_api.iwcv import DEFAULT_FLATTENING_GRID, DEFAULT_IWCV_FOLDS
+from torch_api.policies import LinearQPolicy
+from torch_api.psi import PsiHat
+from torch_api.records import IterationRecord, _brief
 from torch_api.selector import SamplingPolicySelector
 from torch_api.solve import DEFAULT_LAMBDA
 from torch_api.streams import TrialStreams, derive_seed
@@ -53,7 +54,6 @@ from torch_api.streams import TrialStreams, derive_seed
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed"]
 
 _log = logging.getLogger(__name__)
-SLICES = ("all", "episode")
 
 
 class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
@@ -143,6 +143,13 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
             ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
             learner; needs ``psi_mode="single"``).
+        flattening: the exponent ν of the flattened importance weights ``w^ν`` of the fit and
+            of J (sample-reuse policy iteration, docs/flattening.md): 1.0 (the paper's
+            weights, bit for bit), any ν in [0, 1], or ``"iwcv"``: ν of ``flattening_grid``
+            chosen in every iteration, per trial, by importance-weighted cross-validation over
+            ``iwcv_folds`` folds of the rewarded episodes (:mod:`torch_api.iwcv`); J of
+            iteration l then uses the ν chosen in iteration l-1 (1.0 in the first). The ν used
+            and the effective sample size go into each :class:`IterationRecord`.
         initial_episodes: a warm start: rewarded episodes already bought (with any sampling
             policy that recorded its probabilities), stored first in ``api.rewarded`` and used
             by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
@@ -204,6 +211,9 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         overwrite: bool = False,
         rewarded_slice: str = "all",
         fit: str = "brm",
+        flattening: float | str = 1.0,
+        flattening_grid: Sequence[float] = DEFAULT_FLATTENING_GRID,
+        iwcv_folds: int = DEFAULT_IWCV_FOLDS,
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
         on_checkpoint: Callable[[ActivePolicyIteration], None] | None = None,
@@ -221,24 +231,20 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             candidate_offsets=candidate_offsets,
             beta=beta,
         )
-        _check_choice("tie_break", tie_break, TIE_BREAKS)
-        schedule = _check_schedule(schedule)
-        num_steps = _count("num_steps", num_steps)
-        knn_k = _count("knn_k", knn_k)
-        if num_trials is not None:
-            num_trials = _count("num_trials", num_trials)
-        if not 0 < gamma <= 1:
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
-        _check_lambda(lam)
-        _check_choice("rewarded_slice", rewarded_slice, SLICES)
-        if (resume or overwrite) and checkpoint_path is None:
-            raise ValueError("resume and overwrite need a checkpoint_path")
-        _check_choice("psi_mode", psi_mode, PSI_MODES)
-        _check_choice("fit", fit, FITS)
-        if fit == "lstd" and psi_mode != "single":
-            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
-        if num_trials is not None and (collector or getattr(selector, "collector", None)):
-            raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+        schedule, num_steps, knn_k, num_trials = _check_loop_settings(
+            tie_break=tie_break,
+            schedule=schedule,
+            num_steps=num_steps,
+            knn_k=knn_k,
+            num_trials=num_trials,
+            gamma=gamma,
+            lam=lam,
+            rewarded_slice=rewarded_slice,
+            store=(resume or overwrite, checkpoint_path),
+            psi_mode=psi_mode,
+            fit=fit,
+            collector=collector or getattr(selector, "collector", None),
+        )
         self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
         self.on_checkpoint = on_checkpoint
         self.on_iteration = on_iteration
@@ -259,6 +265,9 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.beta = beta
         self.tie_break = tie_break
         self.fit = fit
+        self.evaluation = PolicyEvaluation(  # step 3, checks flattening, its grid and folds
+            fit=fit, lam=self.lam, flattening=flattening, grid=flattening_grid, folds=iwcv_folds
+        )
         self.evaluate = evaluate
         self.seed = int(seed)
         self.streams = TrialStreams.for_trials(self.seed, num_trials, trial_seeds)
@@ -328,7 +337,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
         policy = self.policy.to_device(self.device)
-        self.theta = fit_theta(self.fit, episodes, policy, self.psi, self.basis, self.lam).cpu()
+        fitted = self.evaluation(episodes, policy, self.psi, self.basis)
+        self.theta = fitted.theta.cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -347,6 +357,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             performance=performance,
             seconds=seconds,
             theta=self.theta.tolist(),
+            flattening=fitted.flattening.tolist(),
+            effective_sample_size=fitted.ess.tolist(),
         )
         if self.store is not None:
             self.store.put_record(l_now, asdict(record))
@@ -354,12 +366,15 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.iteration = l_now
         self.history.append(record)
         _log.info(
-            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
+            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far, "
+            "flattening ν %s, effective sample size %s",
             self.mode,
             l_now,
             len(self.schedule),
             seconds,
             self.rewarded_transitions,
+            _brief(fitted.flattening),
+            _brief(fitted.ess),
         )
         if self.on_iteration is not None:
             self.on_iteration(record)

@@ -280,15 +280,22 @@ class SamplingPolicySelector:
         size = max(1, self.max_design_bytes // per_trial)
         return [slice(a, min(a + size, trials)) for a in range(0, trials, size)]
 
-    def _j_chunk(self, episodes, earlier, policy, trials: slice | None) -> torch.Tensor:
+    def _j_chunk(
+        self, episodes, earlier, policy, trials: slice | None, flattening=1.0
+    ) -> torch.Tensor:
         if trials is not None:
             episodes, policy = episodes[trials], policy.trial_slice(trials)
             earlier = None if earlier is None else earlier[trials]
+            if isinstance(flattening, torch.Tensor):
+                flattening = flattening[trials]
         if self.device is not None:
             episodes = episodes.to(self.device)
             earlier = None if earlier is None else earlier.to(self.device)
             policy = policy.to_device(self.device)
-        return self._j(episodes, earlier, policy, self.psi, self.lam).cpu()
+            if isinstance(flattening, torch.Tensor):
+                flattening = flattening.to(self.device)
+        j = self._j(episodes, earlier, policy, self.psi, self.lam, flattening=flattening)
+        return j.cpu()
 
     def select(
         self,
@@ -297,6 +304,7 @@ class SamplingPolicySelector:
         earlier_episodes: TensorDictBase | None = None,
         iteration: int = 0,
         num_episodes: int | None = None,
+        flattening: float | torch.Tensor = 1.0,
     ) -> Selection:
         """Run Algorithm 2 and return the chosen candidate with every J value.
 
@@ -312,6 +320,8 @@ class SamplingPolicySelector:
                 batch; :func:`~torch_api.data.as_episodes`).
             iteration: tag stored with the collected episodes.
             num_episodes: M of this call (default: the selector's ``num_episodes``).
+            flattening: ν of the flattened weights ``w^ν`` the fit uses (a number, or one per
+                trial ``[*T]``): J is then the error of that fit (docs/flattening.md, eq. F2).
         """
         if not candidates:
             raise ValueError("candidates must not be empty")
@@ -322,12 +332,12 @@ class SamplingPolicySelector:
         j_all = (
             torch.cat(
                 [
-                    self._j_chunk(episodes, earlier_episodes, evaluation_policy, trials)
+                    self._j_chunk(episodes, earlier_episodes, evaluation_policy, trials, flattening)
                     for trials in self._trial_chunks(episodes, earlier_episodes)
                 ]
             )
             if param_dims_of(evaluation_policy)
-            else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None)
+            else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None, flattening)
         )
         j_mean = j_all.mean(-2)
         return Selection(
