@@ -89,11 +89,14 @@ def _check_loop_settings(
     psi_mode,
     fit,
     collector,
+    extra=(0, True),
+    env_is_factory=True,
 ) -> tuple:
     """The plain settings of :class:`~torch_api.iteration.ActivePolicyIteration`, checked.
 
     ``store`` is ``(resume or overwrite, checkpoint_path)``; ``collector`` the loop's or the
-    selector's collector factory, if any. Returns ``(schedule, num_steps, knn_k, num_trials)``
+    selector's collector factory, if any; ``extra`` is ``(number of extra candidates, active)``.
+    Returns ``(schedule, num_steps, knn_k, num_trials)``
     normalised.
     """
     from torch_api.fit import FITS  # (imported here: _checks is imported by light modules)
@@ -118,4 +121,11 @@ def _check_loop_settings(
         raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
     if num_trials is not None and collector:
         raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+    if num_trials is not None and not env_is_factory:
+        raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
+    if extra[0] and (num_trials is not None or not extra[1]):
+        raise ValueError(
+            "extra_candidates are offered to the selector: they need active mode (selector=) "
+            "and work without num_trials (a TorchRL actor holds one set of parameters)"
+        )
     return schedule, num_steps, knn_k, num_trials

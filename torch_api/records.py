@@ -47,6 +47,18 @@ class IterationRecord:
     flattening: float | list | None = None
     effective_sample_size: float | list | None = None
 
+    def summary(self, iterations: int) -> str:
+        """One log line: the iteration, its time, the rewards bought, ν and the ESS."""
+        nu, ess = (
+            "-" if v is None else _brief(torch.tensor(v))
+            for v in (self.flattening, self.effective_sample_size)
+        )
+        return (
+            f"iteration {self.iteration}/{iterations} done in {self.seconds:.2f} s: "
+            f"{self.rewarded_transitions} rewarded transitions per trial bought so far, "
+            f"flattening ν {nu}, effective sample size {ess}"
+        )
+
     def row(self) -> dict:
         """The iteration's numbers as one flat dict for JSON/CSV (θ and per-repeat J left out)."""
         return {

@@ -198,14 +198,18 @@ class SamplingPolicySelector:
         lam: float,
         fit: str,
         device: torch.device | str | None,
+        collector: Callable | None = None,
     ) -> SamplingPolicySelector:
         """This selector with a loop's settings: a new selector, this one left as it is.
 
         :class:`~torch_api.iteration.ActivePolicyIteration` binds the selector it is given to
         its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
-        none. M_l (the schedule's, given per call: :meth:`select`'s ``num_episodes``) and the
-        sampling streams (its candidates bring its reward-free streams) are the loop's too: a
-        selector given any of these settings, or a ``generator``, is refused.
+        none, and the loop's ``collector`` where this selector has neither an env nor a
+        collector of its own (the reward-free episodes are then read from the user's collector
+        too, with the reward dropped). M_l (the schedule's, given per call:
+        :meth:`select`'s ``num_episodes``) and the sampling streams (its candidates bring its
+        reward-free streams) are the loop's too: a selector given any of these settings, or a
+        ``generator``, is refused.
         """
         given = sorted(k for k, v in self._loop_settings.items() if v is not None)
         if given:
@@ -213,8 +217,14 @@ class SamplingPolicySelector:
                 f"selector: {given} are the loop's settings (ActivePolicyIteration supplies "
                 "them); leave them unset on the selector you pass it"
             )
+        loops_collector = (  # the loop's collector, where this selector has no source of its own
+            collector is not None
+            and self.env is None
+            and self.collector is None
+            and not self.num_workers
+        )
         return SamplingPolicySelector(
-            env=self.env if self.env is not None else env,
+            env=None if loops_collector else self.env if self.env is not None else env,
             psi=psi,
             num_steps=num_steps,
             num_repeats=self.num_repeats,
@@ -223,7 +233,7 @@ class SamplingPolicySelector:
             max_design_bytes=self.max_design_bytes,
             num_workers=self.num_workers,
             fit=fit,
-            collector=self.collector,
+            collector=collector if loops_collector else self.collector,
             criterion=self.criterion,
         )
 
