@@ -152,3 +152,29 @@ def test_the_loops_collector_also_collects_the_reward_free_episodes():
     )
     api.run()
     assert sorted(calls) == [2, 2, 2]  # K = 2 reward-free calls of Z·M = 2, one rewarded of M
+
+
+def test_a_factory_capped_by_at_most_rows_never_builds_more_rows():
+    """A toy run (Z = 2, K = 4, M = 2) asks a factory for 16 reward-free rows: 16 worker
+    processes with ``lambda rows: ParallelEnv(rows, make_env)``. Capped, it gets at most 2."""
+    from torch_api import at_most_rows
+
+    asked = []
+
+    def rows_of_cartpole(rows):
+        asked.append(rows)
+        return SerialEnv(rows, lambda: GymEnv("CartPole-v1"))
+
+    api = ActivePolicyIteration(
+        env=at_most_rows(rows_of_cartpole, 2),
+        basis=_basis(),
+        schedule=(2, 2),
+        num_steps=5,
+        gamma=0.95,
+        selector=SamplingPolicySelector(num_repeats=2),
+    )
+    api.run()
+    api.close()
+    assert asked and max(asked) <= 2
+    assert api.rewarded.episodes().shape == (4, 5)
+    assert api.reward_free.episodes().shape == (2 * 4 * 2 * 2, 5)  # Z·K·M_l per iteration
