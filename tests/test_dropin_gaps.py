@@ -7,9 +7,10 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
+from test_torchrl_dropin import _actor, _whole_trajectories
 from torchrl.collectors import Collector
-from torchrl.envs import GymEnv, SerialEnv, StepCounter, TransformedEnv
-from torchrl.modules import OneHotCategorical, ProbabilisticActor
+from torchrl.envs import GymEnv, SerialEnv
+from torchrl.modules import ProbabilisticActor
 
 from envs.chain_walk import ChainWalkEnv
 from torch_api import (
@@ -82,18 +83,6 @@ def test_a_categorical_actor_on_a_multi_row_one_hot_env_names_the_fix():
     env.close()
 
 
-def _actor(env):
-    torch.manual_seed(4)
-    net = TensorDictModule(torch.nn.Linear(4, 2), in_keys=["observation"], out_keys=["logits"])
-    return ProbabilisticActor(
-        net,
-        in_keys=["logits"],
-        distribution_class=OneHotCategorical,
-        return_log_prob=True,
-        spec=env.action_spec,
-    )
-
-
 def _last_candidate(moments, lam):  # a criterion that always prefers the last candidate
     k = moments.a.shape[-3]
     return -torch.arange(k, dtype=torch.float64).expand(*moments.a.shape[:-3], k)
@@ -130,15 +119,7 @@ def test_the_loops_collector_also_collects_the_reward_free_episodes():
 
     def make_collector(policy, num_episodes):
         calls.append(num_episodes)
-        return Collector(
-            TransformedEnv(GymEnv("CartPole-v1"), StepCounter(max_steps=6)),
-            policy,
-            frames_per_batch=num_episodes * 6,
-            total_frames=-1,
-            trajs_per_batch=num_episodes,
-            traj_format="padded",
-            auto_register_policy_transforms=False,
-        )
+        return _whole_trajectories(6)(policy, num_episodes)
 
     api = ActivePolicyIteration(
         env=GymEnv("CartPole-v1"),

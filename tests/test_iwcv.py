@@ -21,14 +21,6 @@ from torch_api.weights import effective_sample_size
 LAM = 1e-3
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _basis() -> GaussianActionBasis:
     return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
 
