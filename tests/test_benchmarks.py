@@ -31,6 +31,7 @@ BENCHMARKS = ROOT / "benchmarks"
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
         (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),
+        (["cartpole_remedies.py", "--quick", "--only", "LSTD PL iwcv"], "| LSTD PL iwcv | "),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):
