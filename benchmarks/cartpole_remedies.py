@@ -54,6 +54,9 @@ REMEDIES = {  # name: what differs from BASE
     "LSTD PL 10 episodes": {"schedule": (10,) * 6},
     "LSTD PL ε=0.15 fixed": {"epsilon_schedule": "fixed"},
     "LSTD PL softmax β=0.5": {"improvement": "softmax", "beta": 0.5},
+    "LSTD PL ν=0": {"flattening": 0.0},
+    "LSTD PL iwcv, 10 episodes": {"flattening": "iwcv", "schedule": (10,) * 6},
+    "LSTD PL iwcv, ε=0.15 fixed": {"flattening": "iwcv", "epsilon_schedule": "fixed"},
 }
 
 
@@ -130,6 +133,7 @@ def run(name: str, args) -> dict:
     best = returns.max(0).values
     last = history[-1]
     ess = torch.tensor(last.effective_sample_size) / last.rewarded_transitions
+    chosen = torch.tensor([r.chosen for r in history])  # [L, T]: 0 is pi_l itself
     return {
         "name": name,
         "mean_return": returns.mean(1).tolist(),
@@ -137,6 +141,7 @@ def run(name: str, args) -> dict:
         "lost": int(((best >= GOOD) & (returns[-1] < GOOD)).sum()),
         "nu": float(torch.tensor(last.flattening).mean()),
         "ess_percent": float(100 * ess.mean()),
+        "other_than_pi_l": float((chosen != 0).double().mean()) if setting["active"] else None,
         "rewarded_transitions": last.rewarded_transitions,
         "seconds": time.perf_counter() - started,
     }
@@ -161,16 +166,19 @@ def main() -> None:
     rows = []
     print(
         f"| remedy | greedy return, l = 1…{args.iterations} (mean of {args.trials} trials) "
-        f"| ≥ {GOOD} at the end | lost | ν at the end | ESS % | rewarded transitions | s |"
+        f"| ≥ {GOOD} at the end | lost | ν at the end | ESS % | AL: share not pi_l "
+        "| rewarded transitions | s |"
     )
-    print("|" + " --- |" * 8)
+    print("|" + " --- |" * 9)
     for name in args.only or REMEDIES:
         row = run(name, args)
         rows.append(row)
         curve = " ".join(f"{v:.0f}" for v in row["mean_return"])
+        share = "-" if row["other_than_pi_l"] is None else f"{row['other_than_pi_l']:.2f}"
         print(
             f"| {name} | {curve} | {row['final_good']}/{args.trials} | {row['lost']} | "
-            f"{row['nu']:.2f} | {row['ess_percent']:.1f} | {row['rewarded_transitions']} | "
+            f"{row['nu']:.2f} | {row['ess_percent']:.1f} | {share} | "
+            f"{row['rewarded_transitions']} | "
             f"{row['seconds']:.0f} |",
             flush=True,
         )
