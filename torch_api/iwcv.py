@@ -111,7 +111,9 @@ def iwcv_scores(
     episodes = x.shape[-2] // num_steps
     folds = min(int(folds), episodes)
     if folds < 2:
-        return torch.full((*x.shape[:-2], len(grid)), float("nan"), dtype=torch.float64)
+        return torch.full(
+            (*x.shape[:-2], len(grid)), float("nan"), dtype=torch.float64, device=x.device
+        )
     x, w = x.to(torch.float64), w.to(torch.float64)
     left = phi.to(torch.float64) if phi is not None else x  # the moments' left factor
     xf, wf, rf = (_by_fold(t, lead, num_steps, folds) for t in (x, w, reward.to(torch.float64)))
@@ -137,14 +139,14 @@ def choose_flattening(scores: torch.Tensor, grid: Sequence[float]) -> torch.Tens
     biased: on on-policy data every ν gives the same fit and ν = 1 is chosen). Where the scores
     are NaN (fewer than two episodes) the largest ν of the grid is taken.
     """
-    grid_t = torch.tensor(sorted(grid), dtype=torch.float64)
+    grid_t = torch.tensor(sorted(grid), dtype=torch.float64, device=scores.device)
     if list(grid) != sorted(grid):
         raise ValueError(f"grid must be sorted ascending, got {list(grid)}")
     finite = torch.isfinite(scores)
     masked = torch.where(finite, scores, torch.full_like(scores, float("inf")))
     best = masked.min(-1, keepdim=True).values
     tied = finite & (masked <= best + _TIE * best.abs())
-    index = torch.arange(len(grid)).expand_as(scores)
+    index = torch.arange(len(grid), device=scores.device).expand_as(scores)
     pick = torch.where(tied, index, torch.full_like(index, -1)).max(-1).values
     pick = torch.where(finite.any(-1), pick, torch.full_like(pick, len(grid) - 1))
     return grid_t[pick]
