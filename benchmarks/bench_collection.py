@@ -87,7 +87,7 @@ def via_rollout(env, policy, episodes: int):
 def via_collector(env, policy, episodes: int):
     collector = Collector(
         env,
-        policy,
+        policy.with_action_spec(env.action_spec),
         frames_per_batch=episodes * STEPS,
         total_frames=episodes * STEPS,
         reset_at_each_iter=True,

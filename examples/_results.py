@@ -161,7 +161,8 @@ def write_results(args, experiment: Experiment, results: dict, wall: float, **ex
 
 def log_curves(kind: str, out: Path, experiment: Experiment, results: dict) -> None:
     """With a TorchRL logger (``--logger``: csv, tensorboard, wandb) under ``<out>/logs``:
-    ``<schedule>/<method>/<measure>`` = the mean over trials of each curve, per iteration."""
+    ``<schedule>/<method>/<measure>`` = the mean over trials of each curve, per iteration, and
+    of the fit's flattening ν and effective sample size (docs/flattening.md)."""
     if kind == "none":
         return
     from torchrl.record.loggers import get_logger
@@ -170,7 +171,7 @@ def log_curves(kind: str, out: Path, experiment: Experiment, results: dict) -> N
     for name, entry in results.items():
         for method, run in entry["runs"].items():
             for it in run["iterations"]:
-                for measure in experiment.curves:
+                for measure in (*experiment.curves, "flattening", "effective_sample_size"):
                     value = it.get(measure)
                     if isinstance(value, list):
                         value = sum(value) / len(value) if value else None

@@ -81,7 +81,9 @@ def test_collapsed_importance_weights_warn_with_the_effective_sample_size():
     def index(obs):
         return obs[..., 0].round().long() - 1
 
-    uniform = TabularPolicy(table=torch.full((10, 2), 0.5, dtype=torch.float64), state_index=index)
+    uniform = TabularPolicy(
+        table=torch.full((10, 2), 0.5, dtype=torch.float64), state_index=index, one_hot=False
+    )
     env = ChainWalkEnv(batch_size=40, seed=0)
     td = env.rollout(80, uniform, break_when_any_done=False)
     episodes = TensorDict(

@@ -37,6 +37,7 @@ BENCHMARKS = ROOT / "benchmarks"
         (["bench_figure8.py", "--trials", "2", "--startup-repeats", "1"], "| 2 | "),
         (["durability_attacks.py", "--tries", "4"], "SIGTERM at statement k: resumed"),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),
+        (["cartpole_remedies.py", "--quick", "--only", "LSTD PL iwcv"], "| LSTD PL iwcv | "),
     ],
 )
 def test_benchmark_runs_quick(command, expected, tmp_path):

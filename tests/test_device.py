@@ -85,6 +85,7 @@ def test_chain_walk_env_on_device_draws_the_cpu_walks(device):
         basis=GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2),
         theta=torch.linspace(-1, 1, 12, dtype=torch.float64),
         epsilon=0.3,
+        action_spec=env.action_spec,
     )
     ours = env.rollout(
         8, policy=policy.with_streams(torch.Generator().manual_seed(0)), break_when_any_done=False

@@ -110,6 +110,10 @@ def test_chain_walk_api(tmp_path):
     curve = curves / "fixed" / "PL" / "percent_optimal.csv"
     steps = [line.split(",")[0] for line in curve.read_text().splitlines()]
     assert steps == ["0", "1", "2"]
+    # the fit's flattening ν and effective sample size: in the CSV and the logger's curves
+    assert results["fixed", "AL", 2, "flattening"] == [1.0, 1.0]
+    assert len(results["fixed", "AL", 2, "effective_sample_size"]) == 2
+    assert (curves / "fixed" / "AL" / "effective_sample_size.csv").exists()
 
 
 def test_gym_drop_in(tmp_path):

@@ -104,3 +104,4 @@ def test_the_loop_logs_each_iteration_on_the_torch_api_logger(caplog):
     lines = [r.getMessage() for r in caplog.records if r.name.startswith("torch_api")]
     assert len(lines) == 2 and "passive iteration 2/2 done" in lines[1]
     assert "15 rewarded transitions per trial" in lines[1]
+    assert "flattening ν 1, effective sample size" in lines[1]

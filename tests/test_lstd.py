@@ -59,8 +59,10 @@ def test_weighted_lstd_is_the_projected_fixed_point():
     assert np.abs(resid).max() < 1e-2 * np.abs(hand_phi.T @ (w * r) / len(w)).max()
 
 
-def test_lstd_j_equals_trace_of_u_l_lt_per_candidate():
-    """J_k = tr(Ũ L_k L_kᵀ), Ũ over all candidates' episodes and the earlier set (D̄_0)."""
+@pytest.mark.parametrize("nu", [1.0, 0.4])
+def test_lstd_j_equals_trace_of_u_l_lt_per_candidate(nu):
+    """J_k = tr(Ũ L_k L_kᵀ), Ũ over all candidates' episodes and the earlier set (D̄_0); with
+    flattened weights L_k takes w^ν and Ũ keeps w (docs/flattening.md, eq. F3)."""
     basis = _basis()
     psi = PsiHat(basis=basis, gamma=GAMMA, mode="single")
     pi = LinearQPolicy(basis=basis, theta=torch.linspace(1, -1, 12), epsilon=0.15)
@@ -68,7 +70,7 @@ def test_lstd_j_equals_trace_of_u_l_lt_per_candidate():
     cand = torch.stack([_episodes(c, 4, seed=10 + k) for k, c in enumerate(candidates)])
     cand = cand.unsqueeze(0)  # [Z = 1, K, M, N]
     earlier = _episodes(pi.with_rule(epsilon=0.3), 3, seed=5)
-    j = lstd_j_values(cand, earlier, pi, psi, LAM)  # [1, K]
+    j = lstd_j_values(cand, earlier, pi, psi, LAM, flattening=nu)  # [1, K]
 
     def rows(episodes):
         d = build_design(episodes, pi, psi, min_ess_fraction=0.0)
@@ -82,7 +84,7 @@ def test_lstd_j_equals_trace_of_u_l_lt_per_candidate():
     u = x0.T @ np.diag(w0) @ x0 / len(w0)
     for k in range(3):
         phi, x, w = (np.concatenate([own[k][i], prev[i]]) for i in range(3))
-        l_k = _dense_l(phi, x, w, LAM)
+        l_k = _dense_l(phi, x, np.where(w > 0, w**nu, 0.0), LAM)
         np.testing.assert_allclose(j[0, k].item(), np.trace(u @ l_k @ l_k.T), rtol=1e-8)
 
 

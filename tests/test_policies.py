@@ -98,6 +98,7 @@ def test_module_writes_action_and_probs_and_samples_them():
         basis=_basis(),
         theta=torch.linspace(-1, 1, 8),
         epsilon=0.4,
+        one_hot=False,
         generator=torch.Generator().manual_seed(3),
     )
     obs = torch.full((20000, 1), 5.0)
@@ -188,7 +189,7 @@ def test_streams_are_fixed_when_a_policy_is_made():
     from envs.chain_walk import ChainWalkEnv
 
     theta = torch.stack([torch.linspace(-1, 1, 8), torch.linspace(1, -1, 8)])  # two trials
-    policy = LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.5)
+    policy = LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.5, one_hot=False)
     with pytest.raises(AttributeError):
         policy.counter_streams = CounterStreams([1, 2])
     with pytest.raises(AttributeError):
@@ -232,6 +233,7 @@ def test_log_prob_of_the_actions_a_rollout_wrote(spec):
         theta=torch.linspace(-1, 1, 8),
         epsilon=0.3,
         action_spec=action_spec,
+        one_hot=False if action_spec is None else None,
         generator=torch.Generator().manual_seed(5),
     )
     obs = torch.linspace(0, 10, rows).unsqueeze(-1)

@@ -169,3 +169,33 @@ def test_a_standalone_selector_names_what_it_lacks():
     assert type(bound._collection).__name__ == "RolloutCollection"
     assert bound.collect([pi, pi.with_rule(epsilon=1.0)], num_episodes=3).shape == (2, 2, 3, 5)
     assert for_loop.psi is None and for_loop._collection is None  # the original is unchanged
+
+
+@pytest.mark.parametrize("mode", ["grouped", "single"])
+def test_flattened_j_values_match_algorithm_2_written_out(mode):
+    """J of the fit with weights w^ν (docs/flattening.md, eq. F2): A and C of Π_k take w^ν
+    and w^{2ν}, Ũ keeps w; a per-trial ν tensor equals the number."""
+    _, psi, pi = _setup(mode=mode)
+    env = ChainWalkEnv(batch_size=3, seed=1)
+    cands = [pi.with_rule(epsilon=e) for e in (0.15, 1.0)]
+    k, m, n, nu = 2, 3, 8, 0.4
+    episodes = torch.stack(
+        [collect_episodes(env, c, num_episodes=m, num_steps=n, rewarded=False) for c in cands]
+    ).unsqueeze(0)  # [Z=1, K, M, N]
+    earlier = collect_episodes(env, cands[1], num_episodes=2, num_steps=n, rewarded=True)
+    flat = j_values(episodes, earlier, pi, psi, LAM, flattening=nu)
+    per_trial = torch.tensor(nu, dtype=torch.float64)
+    torch.testing.assert_close(
+        j_values(episodes, earlier, pi, psi, LAM, flattening=per_trial), flat, rtol=1e-12, atol=0
+    )
+    d0 = cat_episodes([episodes[0, ki] for ki in range(k)] + [earlier.exclude(("next", "reward"))])
+    design = build_design(d0, pi, psi, min_ess_fraction=0.0)
+    x, w = design.x.numpy(), design.w.numpy()
+    u = (x.T * w) @ x / x.shape[0]
+    for ki in range(k):
+        rows = np.r_[ki * m * n : (ki + 1) * m * n, k * m * n : x.shape[0]]
+        xk, wk = x[rows], np.where(w[rows] > 0, w[rows] ** nu, 0.0)
+        a = (xk.T * wk) @ xk / len(rows)
+        big_l = np.linalg.solve(a + LAM * np.eye(12), xk.T * wk / len(rows))
+        ref = np.trace(u @ big_l @ big_l.T)
+        assert abs(flat[0, ki].item() - ref) <= 1e-8 * ref

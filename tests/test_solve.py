@@ -119,3 +119,31 @@ def test_well_conditioned_solve_does_not_warn():
 def test_j_criterion_rejects_wrong_u_shape():
     with pytest.raises(ValueError, match="u must have shape"):
         j_criterion(torch.ones(3, 2), torch.ones(3), torch.eye(3), LAM)
+
+
+def _dense_flattened_j(x, w, u, lam, nu):
+    """Eq. F2 written out: L_ν = (A_ν + λI)^{-1} Xᵀ W^ν / n, J = tr(Ũ L_ν L_νᵀ)."""
+    return _dense_j(x, torch.where(w > 0, w**nu, 0.0), u, lam)
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.3, 0.75])
+def test_flattened_j_criterion_matches_dense_form(nu):
+    gen = torch.Generator().manual_seed(5)
+    x, w, _ = _data(gen, lead=(3, 2), n=40)
+    w[..., :5] = 0.0  # zero weights stay zero for every ν (padding)
+    z = torch.randn(3, 1, 7, 7, generator=gen, dtype=torch.float64)
+    u = z @ z.mT / 7
+    j = j_criterion(x, w, u, LAM, flattening=nu)
+    for zi in range(3):
+        for k in range(2):
+            ref = _dense_flattened_j(x[zi, k], w[zi, k], u[zi, 0], LAM, nu)
+            assert abs(j[zi, k].item() - ref) <= 1e-8 * abs(ref)
+
+
+def test_flattening_one_is_the_unflattened_j_to_the_bit():
+    gen = torch.Generator().manual_seed(6)
+    x, w, _ = _data(gen, lead=(2,), n=30)
+    u = torch.eye(7, dtype=torch.float64).expand(2, 7, 7)
+    assert torch.equal(j_criterion(x, w, u, LAM, flattening=1.0), j_criterion(x, w, u, LAM))
+    with pytest.raises(ValueError, match="cannot be flattened"):
+        j_criterion(x, w, u, LAM, sq_weights=w**2, flattening=0.5)

@@ -93,7 +93,7 @@ def test_a_policy_whose_actions_do_not_fit_the_spec_is_refused_before_any_step()
 def test_exploration_types_and_the_global_generator():
     basis = cartpole_basis()
     theta = torch.randn(8, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    policy = LinearQPolicy(basis=basis, theta=theta, epsilon=0.6)
+    policy = LinearQPolicy(basis=basis, theta=theta, epsilon=0.6, one_hot=False)
     obs = torch.randn(400, 4, generator=torch.Generator().manual_seed(1))
     greedy = greedy_actions(policy.q_values(obs))
     from tensordict import TensorDict

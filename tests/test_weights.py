@@ -58,3 +58,15 @@ def test_shape_mismatch_rejected():
 def test_effective_sample_size():
     assert effective_sample_size(torch.ones(10)).item() == pytest.approx(10.0)
     assert effective_sample_size(torch.tensor([1.0, 0.0, 0.0])).item() == pytest.approx(1.0)
+
+
+def test_flattened_weights_keep_zeros_and_skip_the_power_at_one():
+    from torch_api.weights import flatten_weights
+
+    w = torch.tensor([[0.0, 0.25, 4.0], [1.0, 9.0, 0.0]], dtype=torch.float64)
+    assert flatten_weights(w, 1.0) is w  # ν = 1: the paper's weights, no power computed
+    assert flatten_weights(w, 0.0).tolist() == [[0.0, 1.0, 1.0], [1.0, 1.0, 0.0]]
+    per_trial = flatten_weights(w, torch.tensor([[0.5], [1.0]], dtype=torch.float64))
+    assert per_trial.tolist() == [[0.0, 0.5, 2.0], [1.0, 9.0, 0.0]]
+    with pytest.raises(ValueError, match="must lie in \\[0, 1\\]"):
+        flatten_weights(w, 1.5)

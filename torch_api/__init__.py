@@ -27,7 +27,13 @@ from importlib.metadata import PackageNotFoundError, version
 from torch_api.actions import ActionEncoding
 from torch_api.basis import GaussianActionBasis
 from torch_api.criterion import Criterion, PooledMoments, j_eq46, pooled_moments
-from torch_api.data import EpisodeBuffer, as_episodes, collect_episodes, pad_steps
+from torch_api.data import (
+    EpisodeBuffer,
+    as_episodes,
+    at_most_rows,
+    collect_episodes,
+    pad_steps,
+)
 from torch_api.design import build_design
 from torch_api.iteration import ActivePolicyIteration, IterationRecord
 from torch_api.policies import (
@@ -70,6 +76,7 @@ __all__ = [
     "TrialStreams",
     "as_episodes",
     "build_design",
+    "at_most_rows",
     "collect_episodes",
     "epsilon_greedy_probs",
     "greedy_actions",

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["ActionEncoding", "check_actions"]
+__all__ = ["ActionEncoding", "check_actions", "check_encoded"]
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,14 @@ class ActionEncoding:
             f"got {type(spec).__name__}"
         )
 
+    @classmethod
+    def of_spec(cls, spec) -> ActionEncoding:
+        """The encoding of an action spec given without its env's batch size: a ``OneHot``
+        spec is ``[*E, A]``, a ``Categorical`` one ``[*E, 1]`` (a trailing 1) or ``[*E]``."""
+        shape = tuple(spec.shape)
+        one_hot = type(spec).__name__ == "OneHot"
+        return cls.from_spec(spec, shape[:-1] if one_hot or shape[-1:] == (1,) else shape)
+
     def encode(self, index: torch.Tensor) -> torch.Tensor:
         """Action indices ``[...]`` -> the env's action tensor."""
         if self.one_hot:
@@ -100,7 +108,23 @@ def check_actions(spec, action: torch.Tensor, *, who: str = "the policy") -> Non
     Raises:
         ValueError: naming the spec's shape and dtype and the action's.
     """
-    inside = spec.is_in(action)
+    one_hot = type(spec).__name__ == "OneHot"
+    try:
+        inside = spec.is_in(action)
+    except RuntimeError as error:  # e.g. an index [E] where a one-hot env wants [E, A]
+        hint = (
+            "A one-hot env (GymEnv's default) needs one-hot actions: give a ProbabilisticActor "
+            "distribution_class=OneHotCategorical (not Categorical), or build the env with "
+            "GymEnv(..., categorical_action_encoding=True) to keep Categorical"
+            if one_hot
+            else "A categorical env needs action indices: give a ProbabilisticActor "
+            "distribution_class=Categorical (not OneHotCategorical)"
+        )
+        raise ValueError(
+            f"{who} wrote actions of shape {tuple(action.shape)} and dtype {action.dtype}, which "
+            f"the env's action spec ({type(spec).__name__}, shape {tuple(spec.shape)}, dtype "
+            f"{spec.dtype}) cannot even compare ({error}). {hint}"
+        ) from error
     if not bool(inside):
         raise ValueError(
             f"{who} wrote actions of shape {tuple(action.shape)} and dtype {action.dtype}, which "
@@ -108,4 +132,50 @@ def check_actions(spec, action: torch.Tensor, *, who: str = "the policy") -> Non
             f"{spec.dtype}) does not accept (action_spec.is_in is False). A one-hot env needs "
             "one-hot actions in the spec's dtype, a categorical env indices; the library's "
             "policies follow the spec when given action_spec=env.action_spec"
+        )
+
+
+def check_encoded(
+    encoding: ActionEncoding, action: torch.Tensor, real: torch.Tensor, *, who: str = "the data"
+) -> None:
+    """Refuse recorded actions that are not in ``encoding`` on the real steps ``real``.
+
+    Args:
+        encoding: the env's encoding (from its action spec).
+        action: the recorded actions ``[*E, N]`` (indices) or ``[*E, N, A]`` (one-hot).
+        real: bool ``[*E, N]``, the steps that exist (padding is not checked).
+
+    Raises:
+        ValueError: an index where the spec is one-hot (the case of a policy that wrote an
+            index into ``GymEnv``'s default one-hot env, which applied action 0 instead), a
+            one-hot vector where it is an index, or a value outside the A actions.
+    """
+    kind = f"{'OneHot' if encoding.one_hot else 'Categorical'}, {encoding.num_actions} actions"
+    batch_dims = real.ndim
+    if encoding.one_hot:
+        if action.ndim != batch_dims + 1 or action.shape[-1] != encoding.num_actions:
+            raise ValueError(
+                f"{who} hold actions of shape {tuple(action.shape)}, not one-hot vectors "
+                f"[..., {encoding.num_actions}] as the action_spec ({kind}) says: an index "
+                "written into a one-hot env (GymEnv's default) is applied as action 0 without an "
+                "error, so these actions were probably not the ones taken. Build the policy with "
+                "action_spec=env.action_spec"
+            )
+        rows = action[real]
+        bad = ((rows != 0) & (rows != 1)).any(-1) | (rows.sum(-1) != 1)
+    else:
+        if action.ndim == batch_dims + 1 and action.shape[-1] == 1:
+            action = action.squeeze(-1)
+        if action.ndim != batch_dims:
+            raise ValueError(
+                f"{who} hold actions of shape {tuple(action.shape)}, not indices as the "
+                f"action_spec ({kind}) says (a one-hot vector in a categorical env?)"
+            )
+        rows = action[real]
+        bad = (rows < 0) | (rows >= encoding.num_actions) | (rows != rows.long())
+    if bad.any():
+        first = rows[bad.nonzero()[0, 0]].tolist()
+        raise ValueError(
+            f"{who} hold {int(bad.sum())} actions outside the action_spec ({kind}), e.g. "
+            f"{first}: every real step needs one valid action (one-hot: exactly one 1)"
         )

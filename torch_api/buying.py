@@ -15,6 +15,7 @@ from tensordict import TensorDict
 
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import validate_episodes
+from torch_api.episodes import to_log_prob_form
 from torch_api.streams import seed_env
 
 __all__ = ["RewardBuying"]
@@ -73,19 +74,21 @@ class RewardBuying:
             earlier = self.rewarded.episodes() if len(self.rewarded) else None
             selection = self.selector.select(
                 self.policy,
-                self._reward_free_candidates(),
+                self._reward_free_candidates() + list(self.extra_candidates),
                 earlier,
                 iteration=l_now,
                 num_episodes=num_episodes,
+                flattening=self.evaluation.flattening_for_j(self.history),
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
             reward_free_transitions = selection.reward_free_transitions
             if self.keep_reward_free:
                 free = selection.episodes.reshape(*self.trial_dims, -1, self.num_steps)
+        extra = self.trial_dims == () and int(chosen) >= len(rules)  # the user's own candidate
         self._selection = {
             "chosen": chosen,
-            "sampling_rule": rules[chosen],
+            "sampling_rule": None if extra else rules[chosen],
             "j_mean": j_mean,
             "j_all": j_all,
             "reward_free_transitions": reward_free_transitions,
@@ -126,9 +129,12 @@ class RewardBuying:
         chosen = selection["chosen"]
         where = f" (stored in {self.checkpoint_path})" if self.checkpoint_path else ""
         try:
+            rule = selection["sampling_rule"]
             bought = self._collect(
                 self._env_for(rows),
-                self._with_rule(selection["sampling_rule"]).with_streams(streams),
+                self._with_rule(rule).with_streams(streams)
+                if rule is not None
+                else self.extra_candidates[int(chosen) - len(self._candidate_rules())],
                 num_episodes=len(episodes),
                 num_steps=self.num_steps,
                 rewarded=True,
@@ -143,6 +149,8 @@ class RewardBuying:
                 f"before (per trial) are kept in api.rewarded{where}; none of this batch was "
                 "stored"
             ) from error
+        if self.extra_candidates:  # one probability form for the family's and the user's
+            bought = to_log_prob_form(bought)
         good, bad = {}, []
         for i, m in enumerate(episodes):
             one = bought[..., i : i + 1, :]

@@ -26,6 +26,7 @@ from torch_api.policy_base import ActionProbsPolicy, param_dims_of
 __all__ = [
     "EnvPerBatch",
     "SpecCheckedPolicy",
+    "at_most_rows",
     "collect_episodes",
     "collect_with_collector",
     "rollouts_or",
@@ -70,6 +71,32 @@ class EnvPerBatch:
         for env in built.values():
             if not getattr(env, "is_closed", False):
                 env.close()
+
+
+def at_most_rows(factory: Callable[[int], EnvBase], max_rows: int) -> Callable[[int], EnvBase]:
+    """An env factory that never builds more than ``max_rows`` rows.
+
+    The library asks a factory for the batch it would roll out at once (``T·M_l`` rewarded rows,
+    ``T·Z·K·M_l`` reward-free ones: 16 for a toy run of Z = 2, K = 4, M = 2), and
+    ``lambda rows: ParallelEnv(rows, make_env)`` starts one worker process per row. Wrapped,
+    the factory is asked for ``min(rows, max_rows)``: a smaller env is rolled out as often as
+    the episodes need (candidate by candidate in the selector). Runs without ``num_trials``
+    only (a trial batch must be rolled out in one piece).
+
+    Example:
+        >>> from torchrl.envs import GymEnv, SerialEnv
+        >>> make = at_most_rows(lambda rows: SerialEnv(rows, lambda: GymEnv("CartPole-v1")), 2)
+        >>> make(16).batch_size, make(1).batch_size
+        (torch.Size([2]), torch.Size([1]))
+    """
+    if isinstance(max_rows, bool) or not isinstance(max_rows, int) or max_rows < 1:
+        raise ValueError(f"max_rows must be an integer >= 1, got {max_rows!r}")
+
+    def capped(rows: int) -> EnvBase:
+        return factory(min(int(rows), max_rows))
+
+    capped.max_rows = max_rows
+    return capped
 
 
 def collect_episodes(

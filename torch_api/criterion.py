@@ -29,6 +29,7 @@ from torch_api.episodes import as_episodes, joinable
 from torch_api.grouped_design import group_sums, grouped_design
 from torch_api.psi import PsiHat
 from torch_api.solve import DEFAULT_LAMBDA, j_from_moments, weighted_moment
+from torch_api.weights import flatten_weights
 
 __all__ = ["Criterion", "PooledMoments", "j_eq46", "j_values", "pooled_moments"]
 
@@ -88,6 +89,7 @@ def j_values(
     lam: float = DEFAULT_LAMBDA,
     *,
     criterion: Criterion = j_eq46,
+    flattening: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """J of every candidate from reward-free episodes (eq. 42-46, Algorithm 2 steps 2-4).
 
@@ -103,11 +105,30 @@ def j_values(
         psi: the psi_hat module.
         lam: λ.
         criterion: ``(PooledMoments, lam) -> [..., K]`` (:data:`Criterion`).
+        flattening: ν of the fit's flattened weights (see :func:`pooled_moments`).
 
     Returns:
         J ``[..., K]`` (float64).
     """
-    return criterion(pooled_moments(candidate_episodes, earlier_episodes, policy, psi), lam)
+    moments = pooled_moments(
+        candidate_episodes, earlier_episodes, policy, psi, flattening=flattening
+    )
+    return criterion(moments, lam)
+
+
+def _per_trial(nu, w: torch.Tensor):
+    """ν (a number, or ``[*T]`` per trial) shaped to broadcast against weights ``[*T, ..., n]``."""
+    if not isinstance(nu, torch.Tensor):
+        return nu
+    return nu.reshape(*nu.shape, *[1] * (w.ndim - nu.ndim))
+
+
+def _flat_moments(x, w, nu):
+    """``Σ w^ν x xᵀ``, ``Σ w^{2ν} x xᵀ`` and the unflattened ``Σ w x xᵀ`` of Ũ (eq. F2)."""
+    w_nu = flatten_weights(w, _per_trial(nu, w))
+    a = weighted_moment(x, w_nu)
+    u = a if w_nu is w else weighted_moment(x, w)
+    return a, weighted_moment(x, w_nu.pow(2)), u
 
 
 def pooled_moments(
@@ -115,6 +136,8 @@ def pooled_moments(
     earlier_episodes: TensorDictBase | None,
     policy,
     psi: PsiHat,
+    *,
+    flattening: float | torch.Tensor = 1.0,
 ) -> PooledMoments:
     """The pooled moments of every candidate from reward-free episodes (eq. 42-45).
 
@@ -132,6 +155,10 @@ def pooled_moments(
         policy: the evaluation policy (``action_probs``); parameters' leading dims prefix
             ``[...]``.
         psi: the psi_hat module.
+        flattening: ν of the flattened weights the fit will use (docs/flattening.md, eq. F2),
+            a number or one per trial ``[*T]`` (the leading dims of the policy's parameters):
+            ``A_k`` takes ``w^ν``, ``C_k`` takes ``w^{2ν}``, while ``Ũ`` keeps w (it measures
+            the error under the evaluation policy). ν = 1: the paper's moments, as before.
 
     Returns:
         :class:`PooledMoments` with ``a``, ``c`` ``[..., K, B, B]``, ``u`` ``[..., 1, B, B]``
@@ -170,7 +197,8 @@ def pooled_moments(
             pieces.append(prev.expand(*lead, *prev.shape[-2:]).clone())
         split = num_candidates * num_episodes * num_steps
         if psi.mode == "grouped":  # one psi_hat row per (s, a): the moments are group sums
-            return _grouped_moments(torch.cat(pieces, dim=-2), policy, psi, split, num_candidates)
+            pool = torch.cat(pieces, dim=-2)
+            return _grouped_moments(pool, policy, psi, split, num_candidates, flattening)
         design = build_design(torch.cat(pieces, dim=-2), policy, psi, min_ess_fraction=0.0)
 
         def own_rows(t: torch.Tensor) -> torch.Tensor:  # [..., K, M·N, *]
@@ -187,26 +215,27 @@ def pooled_moments(
                 w=design.w.narrow(len(lead), split, design.w.shape[len(lead)] - split),
                 num_samples=design.num_samples - n_own.sum(-1),
             )
-    return _normalised(*_moments(own_x, own_w, n_own, shared, len(lead)))
+    return _normalised(*_moments(own_x, own_w, n_own, shared, len(lead), flattening))
 
 
-def _moments(own_x, own_w, n_own, shared, lead_dims: int):
-    """Unnormalised moments of each candidate's own rows and of the shared earlier rows."""
-    a_own = weighted_moment(own_x, own_w)  # [..., K, B, B]
-    c_own = weighted_moment(own_x, own_w.pow(2))
-    a_shared = c_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
+def _moments(own_x, own_w, n_own, shared, lead_dims: int, flattening):
+    """Unnormalised moments of each candidate's own rows and of the shared earlier rows: A's
+    (``w^ν``), C's (``w^{2ν}``) and Ũ's (w) sums (eq. F2)."""
+    a_own, c_own, u_own = _flat_moments(own_x, own_w, flattening)  # [..., K, B, B]
+    a_shared = c_shared = u_shared = own_x.new_zeros(own_x.shape[-1], own_x.shape[-1])
     n_shared = n_own.new_zeros(())
     if shared is not None:
         stretch = [1] * (lead_dims + 2 - shared.x.ndim)  # dims (repeats) the shared rows lack
-        a_shared = weighted_moment(shared.x, shared.w)
-        a_shared = a_shared.reshape(*a_shared.shape[:-2], *stretch, *a_shared.shape[-2:])
-        c_shared = weighted_moment(shared.x, shared.w.pow(2)).reshape(a_shared.shape)
+        a_shared, c_shared, u_shared = (
+            m.reshape(*m.shape[:-2], *stretch, *m.shape[-2:])
+            for m in _flat_moments(shared.x, shared.w, flattening)
+        )
         n_shared = shared.num_samples.to(torch.float64)
         n_shared = n_shared.reshape(*n_shared.shape, *stretch)
-    return a_own, c_own, n_own, a_shared, c_shared, n_shared
+    return a_own, c_own, u_own, n_own, a_shared, c_shared, u_shared, n_shared
 
 
-def _grouped_moments(pool, policy, psi: PsiHat, split: int, num_candidates: int):
+def _grouped_moments(pool, policy, psi: PsiHat, split: int, num_candidates: int, flattening):
     """The pooled moments of grouped psi_hat from group sums (:mod:`torch_api.grouped_design`):
     ``Σ_i w_i x_i x_iᵀ = Σ_g (Σ_{i∈g} w_i) x_g x_gᵀ``; the first ``split`` samples of each
     pool ``[..., K·M + M', N]`` are the K candidates' (equal shares), the rest the earlier sets."""
@@ -214,27 +243,29 @@ def _grouped_moments(pool, policy, psi: PsiHat, split: int, num_candidates: int)
     x, width = design.x, design.x.shape[-2]
     lead = x.shape[:-2]
 
-    def moment(weights: torch.Tensor, group: torch.Tensor) -> torch.Tensor:
-        sums = group_sums(weights, group, width)  # [..., (K,) G]
-        rows = x.unsqueeze(-3) if sums.ndim > x.ndim - 1 else x
-        return (rows * sums.unsqueeze(-1)).mT @ rows
+    def moments(weights: torch.Tensor, group: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        rows = x.unsqueeze(-3) if weights.ndim > x.ndim - 1 else x  # [..., (1,) G, B]
+        w_nu = flatten_weights(weights, _per_trial(flattening, weights))
+        out = []
+        for w in (w_nu, w_nu.pow(2), weights):  # A's, C's and Ũ's weights (eq. F2)
+            sums = group_sums(w, group, width)  # [..., (K,) G]
+            out.append((rows * sums.unsqueeze(-1)).mT @ rows)
+        return tuple(out)
 
     own = (*lead, num_candidates, split // num_candidates)
     own_w, own_group = design.w[..., :split].reshape(own), design.group[..., :split].reshape(own)
     n_own = design.mask[..., :split].reshape(own).sum(-1).to(torch.float64)
-    a_own, c_own = moment(own_w, own_group), moment(own_w.pow(2), own_group)
-    shared_w, shared_group = design.w[..., split:], design.group[..., split:]
-    a_shared, c_shared = moment(shared_w, shared_group), moment(shared_w.pow(2), shared_group)
+    shared = moments(design.w[..., split:], design.group[..., split:])
     n_shared = design.mask[..., split:].sum(-1).to(torch.float64)
-    return _normalised(a_own, c_own, n_own, a_shared, c_shared, n_shared)
+    return _normalised(*moments(own_w, own_group), n_own, *shared, n_shared)
 
 
-def _normalised(a_own, c_own, n_own, a_shared, c_shared, n_shared) -> PooledMoments:
-    """A_k, C_k of each candidate's Π_k and Ũ of D̄_0 from the unnormalised moments (Ũ is
-    the sum of all of them, with no pass of its own)."""
+def _normalised(a_own, c_own, u_own, n_own, a_shared, c_shared, u_shared, n_shared):
+    """A_k, C_k of each candidate's Π_k and Ũ of D̄_0 (all candidates' rows and the shared
+    ones, with no pass of its own) from the unnormalised moments: :class:`PooledMoments`."""
     n_k = (n_own + n_shared.unsqueeze(-1))[..., None, None]
     n_0 = (n_own.sum(-1) + n_shared)[..., None, None]
-    u_tilde = (a_own.sum(-3) + a_shared) / n_0  # eq. 42 over D̄_0
+    u_tilde = (u_own.sum(-3) + u_shared) / n_0  # eq. 42 over D̄_0
     a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
     c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
     if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):

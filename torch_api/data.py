@@ -46,6 +46,7 @@ from torch_api.buffer import EpisodeBuffer, cat_episodes, validate_episodes
 from torch_api.collect import (
     EnvPerBatch,
     SpecCheckedPolicy,
+    at_most_rows,
     collect_episodes,
     collect_with_collector,
 )
@@ -66,6 +67,7 @@ from torch_api.streams import seed_env
 __all__ = [
     "EXTERNAL_POLICY_ID",
     "EnvPerBatch",
+    "at_most_rows",
     "EpisodeBuffer",
     "LOG_PROB_KEYS",
     "REWARD_KEY",

@@ -106,6 +106,9 @@ class DurableState:
             else {str(k): _plain(v) for k, v in self._warm.items(True, True)},
             "fit": self.fit,
         }
+        if self.extra_candidates:  # (left out when there are none: older runs stay resumable)
+            config["extra_candidates"] = [_qualified(c) for c in self.extra_candidates]
+        config |= self.evaluation.settings()  # ν (left out at 1.0: older runs stay resumable)
         return config
 
     def _open_store(self, *, resume: bool, overwrite: bool) -> None:
@@ -185,9 +188,10 @@ class DurableState:
             raise CorruptRunError(f"the run {path} cannot be restored: {error}") from None
         if selection is not None:
             selection["chosen"] = torch.tensor(selection["chosen"], dtype=torch.long)
-            selection["sampling_rule"] = torch.tensor(
-                selection["sampling_rule"], dtype=torch.float64
-            )
+            if selection["sampling_rule"] is not None:  # (None: an extra candidate)
+                selection["sampling_rule"] = torch.tensor(
+                    selection["sampling_rule"], dtype=torch.float64
+                )
         pending = None
         if selection is not None and len(partial) == self.schedule[nxt - 1]:
             last = [partial[m] for m in sorted(partial)]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torch_api.actions import ActionEncoding
+from torch_api.actions import ActionEncoding, check_encoded
 
 __all__ = [
     "EXTERNAL_POLICY_ID",
@@ -96,6 +96,7 @@ def _episodes_from_rollout(
     real = ~ended_before if mask is None else ~ended_before & mask.reshape(shape).bool()
     action = rollout["action"]
     if encoding is not None:
+        check_encoded(encoding, action, real, who="the episodes")
         index = encoding.decode(action, rollout.batch_dims)
     else:
         index = _as_index(action, rollout.batch_dims)
@@ -220,7 +221,9 @@ def as_episodes(
         data: the TensorDict.
         rewarded: keep (and require) ``("next", "reward")``.
         action_spec: the env's action spec, to read one-hot actions by their encoding (default:
-            a trailing dim of 1 is an index, a longer one a one-hot vector).
+            a trailing dim of 1 is an index, a longer one a one-hot vector). The actions of
+            every real step are checked against it (:func:`~torch_api.actions.check_encoded`):
+            an index in a one-hot env's data (an action GymEnv applied as 0) is refused.
         num_steps: pad the episodes to this N (e.g. a replay buffer's fixed episode length).
         taken_log_prob: keep only ``sample_log_prob``, the log-probability of the taken action
             (:func:`to_log_prob_form`): the form every sampling policy can give, so episodes of
@@ -240,7 +243,7 @@ def as_episodes(
     """
     encoding = None
     if action_spec is not None:
-        encoding = ActionEncoding.from_spec(action_spec, tuple(action_spec.shape[:-1]))
+        encoding = ActionEncoding.of_spec(action_spec)
     episodes, _, _ = _from_torchrl(data, rewarded=rewarded, encoding=encoding)
     if not rewarded:
         episodes = episodes.exclude(REWARD_KEY)

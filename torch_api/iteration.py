@@ -30,13 +30,10 @@ from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 from torch_api._checks import (
-    _check_choice,
     _check_device,
     _check_finite,
-    _check_lambda,
-    _check_schedule,
+    _check_loop_settings,
     _check_seed,
-    _count,
     _initial_theta,
 )
 from torch_api.actions import ActionEncoding
@@ -50,9 +47,10 @@ from torch_api.candidates import (
 )
 from torch_api.collect import EnvPerBatch, rollouts_or
 from torch_api.durable import DurableState
-from torch_api.fit import FITS, fit_theta
-from torch_api.policies import TIE_BREAKS, LinearQPolicy
-from torch_api.psi import PSI_MODES, PsiHat
+from torch_api.fit import PolicyEvaluation
+from torch_api.iwcv import DEFAULT_FLATTENING_GRID, DEFAULT_IWCV_FOLDS
+from torch_api.policies import LinearQPolicy
+from torch_api.psi import PsiHat
 from torch_api.records import IterationRecord
 from torch_api.selector import SamplingPolicySelector
 from torch_api.solve import DEFAULT_LAMBDA
@@ -61,7 +59,6 @@ from torch_api.streams import TrialStreams, derive_seed
 __all__ = ["ActivePolicyIteration", "IterationRecord", "derive_seed"]
 
 _log = logging.getLogger(__name__)
-SLICES = ("all", "episode")
 
 
 class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
@@ -113,10 +110,9 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             θ = 0 after rewards that were all zero, is uniform) or ``"lowest"`` (all to the
             lowest action index). See :func:`~torch_api.policies.greedy_probs`.
         evaluate: optional callback ``(policy, seed) -> dict`` measuring pi_{l+1} after every
-            iteration. The policy samples from streams seeded from (seed, l) (one per trial with
-            ``trial_seeds``); ``seed`` is derived from (seed, l) too, for the callback's own
-            environment (with ``set_block_seeds``, ``api.block_seeds(l, "evaluation")`` gives
-            per-trial seeds). A resumed run then measures exactly as an uninterrupted one.
+            iteration; policy and ``seed`` (for the callback's env; per trial:
+            ``api.block_seeds(l, "evaluation")``) come from (seed, l), so a resumed run
+            measures exactly as an uninterrupted one.
         num_trials: T, independent trials run side by side (None: a single run, θ ``[B]``).
         seed: seed of the run: the policies' sampling streams (fresh for each use) and the
             envs' seeds (``env.set_seed``) of iteration l are derived from ``(seed, l, role)``
@@ -151,6 +147,10 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         fit: ``"brm"`` (the paper: θ by weighted least squares of r on psi_hat, eq. 22-28) or
             ``"lstd"`` (beyond the paper: LSTD-Q, :mod:`torch_api.lstd`, with J of the same
             learner; needs ``psi_mode="single"``).
+        flattening: ν of the flattened weights ``w^ν`` of the fit and of J (docs/flattening.md):
+            1.0 (the paper's, bit for bit), a ν in [0, 1], or ``"iwcv"``: ν of
+            ``flattening_grid`` chosen per iteration and trial by IWCV over ``iwcv_folds``
+            folds of the rewarded episodes (:mod:`torch_api.iwcv`; J of iteration l uses ν_{l-1}).
         initial_episodes: a warm start: rewarded episodes already bought (with any sampling
             policy that recorded its probabilities), stored first in ``api.rewarded`` and used
             by every fit and as earlier sampling sets. TorchRL data as TorchRL produces it (a
@@ -159,13 +159,15 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             (:meth:`~torch_api.data.EpisodeBuffer.extend`). With ``num_trials`` every trial
             starts from the same episodes.
         collector: optional factory ``(policy, num_episodes) -> Collector`` of the user's own
-            (a TorchRL ``Collector`` yielding whole trajectories of at most N steps, e.g.
-            ``trajs_per_batch=num_episodes, traj_format="padded"`` on an env with
-            ``StepCounter(max_steps=N)``): the rewarded episodes are then read from it
-            (:func:`~torch_api.data.collect_with_collector`) instead of from ``env.rollout``
-            (the default; faster on batched envs); give the selector one too for the
-            reward-free ones. The collector's env is then seeded by the user, not by ``seed``;
-            ``env`` still names the env (its action encoding). Not with ``num_trials``.
+            (whole trajectories of at most N steps, e.g. ``trajs_per_batch=num_episodes,
+            traj_format="padded"``): the rewarded episodes, and the reward-free ones of a
+            selector without an env or collector of its own, are read from it
+            (:func:`~torch_api.data.collect_with_collector`) instead of ``env.rollout``. Its env
+            is seeded by the user; ``env`` still names the env. Not with ``num_trials``.
+        extra_candidates: the user's own sampling policies (e.g. a TorchRL
+            ``ProbabilisticActor(..., return_log_prob=True)``), candidates K, K+1, … after the
+            family's; rewarded episodes are then stored with ``sample_log_prob``. Active mode,
+            without ``num_trials``.
         on_checkpoint: optional hook ``(api) -> None`` called after every commit to the store
             (progress, a testing aid that stops the process at a given commit).
         on_iteration: optional hook ``(record) -> None`` called with each completed
@@ -212,8 +214,12 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         overwrite: bool = False,
         rewarded_slice: str = "all",
         fit: str = "brm",
+        flattening: float | str = 1.0,
+        flattening_grid: Sequence[float] = DEFAULT_FLATTENING_GRID,
+        iwcv_folds: int = DEFAULT_IWCV_FOLDS,
         initial_episodes: TensorDictBase | Sequence[TensorDictBase] | None = None,
         collector: Callable | None = None,
+        extra_candidates: Sequence[nn.Module] = (),
         on_checkpoint: Callable[[ActivePolicyIteration], None] | None = None,
         on_iteration: Callable[[IterationRecord], None] | None = None,
     ) -> None:
@@ -229,31 +235,28 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             candidate_offsets=candidate_offsets,
             beta=beta,
         )
-        _check_choice("tie_break", tie_break, TIE_BREAKS)
-        schedule = _check_schedule(schedule)
-        num_steps = _count("num_steps", num_steps)
-        knn_k = _count("knn_k", knn_k)
-        if num_trials is not None:
-            num_trials = _count("num_trials", num_trials)
-        if not 0 < gamma <= 1:
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
-        _check_lambda(lam)
+        schedule, num_steps, knn_k, num_trials = _check_loop_settings(
+            tie_break=tie_break,
+            schedule=schedule,
+            num_steps=num_steps,
+            knn_k=knn_k,
+            num_trials=num_trials,
+            gamma=gamma,
+            lam=lam,
+            rewarded_slice=rewarded_slice,
+            store=(resume or overwrite, checkpoint_path),
+            psi_mode=psi_mode,
+            fit=fit,
+            collector=collector or getattr(selector, "collector", None),
+            extra=(len(extra_candidates), selector is not None),
+            env_is_factory=not isinstance(env, EnvBase),
+        )
         seed, device = _check_seed(seed), _check_device(device)
         candidate_offsets = _check_finite("candidate_offsets", candidate_offsets)
-        _check_choice("rewarded_slice", rewarded_slice, SLICES)
-        if (resume or overwrite) and checkpoint_path is None:
-            raise ValueError("resume and overwrite need a checkpoint_path")
-        _check_choice("psi_mode", psi_mode, PSI_MODES)
-        _check_choice("fit", fit, FITS)
-        if fit == "lstd" and psi_mode != "single":
-            raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
-        if num_trials is not None and (collector or getattr(selector, "collector", None)):
-            raise ValueError("a collector (the loop's or the selector's) works without num_trials")
+        self.extra_candidates = tuple(extra_candidates)
         self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
         self.on_checkpoint = on_checkpoint
         self.on_iteration = on_iteration
-        if num_trials is not None and isinstance(env, EnvBase):
-            raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
         self.env = env
         self._env_for = EnvPerBatch(env)
         self.num_trials = num_trials
@@ -269,6 +272,9 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         self.beta = beta
         self.tie_break = tie_break
         self.fit = fit
+        self.evaluation = PolicyEvaluation(  # step 3, checks flattening, its grid and folds
+            fit=fit, lam=self.lam, flattening=flattening, grid=flattening_grid, folds=iwcv_folds
+        )
         self.evaluate = evaluate
         self.seed = int(seed)
         self.streams = TrialStreams.for_trials(self.seed, num_trials, trial_seeds)
@@ -301,11 +307,11 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
                 lam=self.lam,
                 fit=fit,
                 device=self.device,
+                collector=collector,
             )
-        repeats = 0 if selector is None else selector.num_repeats
-        self.reward_free = EpisodeBuffer(
-            rewarded=False, capacity=max(1, repeats * self.family.num_candidates * sum(schedule))
-        )
+        k = self.family.num_candidates + len(self.extra_candidates)
+        z = 0 if selector is None else selector.num_repeats
+        self.reward_free = EpisodeBuffer(rewarded=False, capacity=max(1, z * k * sum(schedule)))
         self.history: list[IterationRecord] = []
         self._reward_free_transitions = 0
         self._pending: dict | None = None  # an iteration whose rewards are bought, θ not yet fit
@@ -338,7 +344,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         # Policy evaluation on every rewarded episode so far (sample reuse, eq. 56).
         episodes = self.rewarded.episodes().to(self.device)
         policy = self.policy.to_device(self.device)
-        self.theta = fit_theta(self.fit, episodes, policy, self.psi, self.basis, self.lam).cpu()
+        fitted = self.evaluation(episodes, policy, self.psi, self.basis)
+        self.theta = fitted.theta.cpu()
         self.policy = self._policy(self.theta, l_now + 1)  # policy improvement
         pending, self._pending = self._pending, None
         seconds = pending["seconds"] + time.perf_counter() - started
@@ -348,7 +355,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
         record = IterationRecord(
             iteration=l_now,
             chosen=pending["chosen"].tolist(),
-            sampling_rule=pending["sampling_rule"].tolist(),
+            sampling_rule=None if (rule := pending["sampling_rule"]) is None else rule.tolist(),
             j_mean=pending["j_mean"],
             j_all=pending["j_all"],
             episodes_bought=self.schedule[l_now - 1],
@@ -357,6 +364,8 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             performance=performance,
             seconds=seconds,
             theta=self.theta.tolist(),
+            flattening=fitted.flattening.tolist(),
+            effective_sample_size=fitted.ess.tolist(),
         )
         if self.store is not None:
             # shallow: the store serialises the lists (asdict's deep copy cost seconds)
@@ -364,14 +373,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             self._on_commit()
         self.iteration = l_now
         self.history.append(record)
-        _log.info(
-            "%s iteration %d/%d done in %.2f s: %d rewarded transitions per trial bought so far",
-            self.mode,
-            l_now,
-            len(self.schedule),
-            seconds,
-            self.rewarded_transitions,
-        )
+        _log.info("%s %s", self.mode, record.summary(len(self.schedule)))
         if self.on_iteration is not None:
             self.on_iteration(record)
         if self.iteration == len(self.schedule):

@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from torch_api.design import build_design
 from torch_api.psi import PsiHat
 from torch_api.solve import weighted_moment
+from torch_api.weights import flatten_weights
 
 __all__ = ["lstd_j_from_moments", "lstd_j_values", "phi_rows", "weighted_lstd"]
 
@@ -111,6 +112,8 @@ def lstd_j_values(
     policy,
     psi: PsiHat,
     lam: float,
+    *,
+    flattening: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """J of every candidate for an LSTD-Q learner, like :func:`~torch_api.selector.j_values`.
 
@@ -121,6 +124,8 @@ def lstd_j_values(
         candidate_episodes: reward-free episodes ``[..., K, M, N]``.
         earlier_episodes: earlier sampling sets ``[*T, M', N]`` (rewards not read) or None.
         policy: the evaluation policy; psi: the psi_hat module; lam: λ > 0.
+        flattening: ν of the fit's flattened weights, a number or ``[*T]`` per trial
+            (docs/flattening.md, eq. F3): ``A_k`` takes ``w^ν``, ``C_k`` ``w^{2ν}``, Ũ keeps w.
 
     Returns:
         J ``[..., K]`` (float64).
@@ -141,9 +146,13 @@ def lstd_j_values(
     def moments(episodes):
         design = build_design(episodes, policy, psi, min_ess_fraction=0.0)
         phi = phi_rows(episodes, psi.basis)
+        nu = flattening
+        if isinstance(nu, torch.Tensor):  # one ν per trial [*T]: broadcast over the rest
+            nu = nu.reshape(*nu.shape, *[1] * (design.w.ndim - nu.ndim))
+        w_nu = flatten_weights(design.w, nu)
         return (
-            _lstd_moment(phi, design.x, design.w),  # Σ w phi xᵀ
-            weighted_moment(phi, design.w.pow(2)),  # Σ w² phi phiᵀ
+            _lstd_moment(phi, design.x, w_nu),  # Σ w^ν phi xᵀ
+            weighted_moment(phi, w_nu.pow(2)),  # Σ w^{2ν} phi phiᵀ
             weighted_moment(design.x, design.w),  # Σ w x xᵀ
             design.num_samples.to(torch.float64),
         )

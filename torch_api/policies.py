@@ -134,8 +134,12 @@ class LinearQPolicy(ActionProbsPolicy):
             the maximum: ``"uniform"`` (equal parts; with θ = 0, or θ = 1 on a basis with the
             same features per action, the policy is uniform) or ``"lowest"`` (all to the lowest
             index). See :func:`greedy_probs`.
-        one_hot: write one-hot actions (``bool``, TorchRL's ``OneHot`` default) where no
-            ``action_spec`` is given.
+        one_hot: where no ``action_spec`` is given, the encoding stated by hand: True writes
+            one-hot actions (``bool``, TorchRL's ``OneHot`` default), False indices. Given
+            neither, the policy refuses to act as a module (``policy(td)``, ``env.rollout``,
+            a ``Collector``) with an error naming the fix: an index written into a one-hot env
+            (``GymEnv``'s default) would be applied as action 0. Its pure functions
+            (``action_probs``, ``log_prob``) need no encoding.
         action_spec: the env's action spec (``env.action_spec``): actions are written in its
             encoding (one-hot or index) and dtype. :func:`~torch_api.data.collect_episodes`
             sets it from the env it collects on.
@@ -149,7 +153,7 @@ class LinearQPolicy(ActionProbsPolicy):
         >>> from torch_api.basis import GaussianActionBasis
         >>> basis = GaussianActionBasis(centers=torch.tensor([[1.0], [9.0]]), tau=1.5,
         ...                             num_actions=2)
-        >>> policy = LinearQPolicy(basis=basis, theta=torch.ones(6), epsilon=0.15)
+        >>> policy = LinearQPolicy(basis=basis, theta=torch.ones(6), epsilon=0.15, one_hot=False)
         >>> td = policy(TensorDict({"observation": torch.ones(4, 1)}, batch_size=[4]))
         >>> td["action"].shape, td["sample_probs"].shape
         (torch.Size([4]), torch.Size([4, 2]))
@@ -163,7 +167,7 @@ class LinearQPolicy(ActionProbsPolicy):
         epsilon: float | torch.Tensor | None = None,
         beta: float | torch.Tensor | None = None,
         tie_break: str = "uniform",
-        one_hot: bool = False,
+        one_hot: bool | None = None,
         action_spec=None,
         generator: torch.Generator | None = None,
         streams: Streams = None,

@@ -122,7 +122,8 @@ class ActionProbsPolicy(TensorDictModuleBase):
         ...         probs = torch.zeros(*obs.shape[:-1], self.num_actions, dtype=torch.float64)
         ...         probs[..., -1] = 1.0
         ...         return probs
-        >>> policy = AlwaysRight(num_actions=2).with_streams(CounterStreams(0))
+        >>> policy = AlwaysRight(num_actions=2, one_hot=False)  # (or action_spec=env.action_spec)
+        >>> policy = policy.with_streams(CounterStreams(0))
         >>> td = policy(TensorDict({"observation": torch.zeros(3, 1)}, batch_size=[3]))
         >>> td["action"].tolist(), td["sample_probs"].shape
         ([1, 1, 1], torch.Size([3, 2]))
@@ -132,7 +133,7 @@ class ActionProbsPolicy(TensorDictModuleBase):
         self,
         *,
         num_actions: int,
-        one_hot: bool = False,
+        one_hot: bool | None = None,
         action_spec=None,
         generator: torch.Generator | None = None,
         streams: Streams = None,
@@ -144,6 +145,10 @@ class ActionProbsPolicy(TensorDictModuleBase):
         if generator is not None and streams is not None:
             raise ValueError("give the random streams once: generator or streams, not both")
         self.num_actions = int(num_actions)
+        # Whether the env's encoding was given (action_spec=, or one_hot= said explicitly):
+        # without it, forward refuses to act rather than write an index a one-hot env misreads.
+        self.encoding_known = action_spec is not None or one_hot is not None
+        one_hot = bool(one_hot)
         self.one_hot = one_hot
         self.action_encoding = _encoding(action_spec, self.num_actions, one_hot)
         self._streams = _check_streams(generator if streams is None else streams)
@@ -190,9 +195,10 @@ class ActionProbsPolicy(TensorDictModuleBase):
         streams = self._streams
         if trials is not None and isinstance(streams, CounterStreams) and len(streams) > 1:
             streams = streams.select(trials)
+        known = self.encoding_known
         return {
-            "one_hot": self.one_hot,
-            "action_spec": self.action_encoding,
+            "one_hot": self.one_hot if known else None,
+            "action_spec": self.action_encoding if known else None,
             "streams": streams,
             "observation_key": self.observation_key,
             "action_key": self.action_key,
@@ -251,14 +257,24 @@ class ActionProbsPolicy(TensorDictModuleBase):
         """The same policy (same parameters and random streams) writing actions in the encoding
         of ``action_spec`` (a TorchRL spec or an :class:`~torch_api.actions.ActionEncoding`)."""
         encoding = _encoding(action_spec, self.num_actions, self.one_hot)
-        if encoding == self.action_encoding:
+        if encoding == self.action_encoding and self.encoding_known:
             return self
         other = self._copy()  # shares θ, the basis and the streams
+        other.encoding_known = True
         other.action_encoding = encoding
         other.one_hot = encoding.one_hot
         return other
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not self.encoding_known:
+            raise ValueError(
+                f"{type(self).__name__} was built without action_spec=, so it cannot know whether "
+                "the env takes an action index or a one-hot vector (GymEnv's default is one-hot, "
+                "and it applies action 0 to an index without an error). Build it with "
+                "action_spec=env.action_spec (or call policy.with_action_spec(env.action_spec)); "
+                "one_hot=False / True states the encoding by hand. The library's own collection "
+                "(collect_episodes, the selector, ActivePolicyIteration) sets it from the env."
+            )
         obs = tensordict.get(self.observation_key)
         if obs.ndim == tensordict.batch_dims:  # scalar observations (a state index)
             obs = obs.unsqueeze(-1)
@@ -280,8 +296,7 @@ def _encoding(action_spec, num_actions: int, one_hot: bool) -> ActionEncoding:
     if isinstance(action_spec, ActionEncoding):
         encoding = action_spec
     else:
-        batch = tuple(action_spec.shape[:-1])
-        encoding = ActionEncoding.from_spec(action_spec, batch)
+        encoding = ActionEncoding.of_spec(action_spec)
     if encoding.num_actions != num_actions:
         raise ValueError(
             f"action_spec has {encoding.num_actions} actions but the policy {num_actions}"

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import torch
+
 __all__ = ["IterationRecord"]
 
 
@@ -25,6 +27,10 @@ class IterationRecord:
         performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
         seconds: wall time of the iteration (evaluation callback excluded).
         theta: θ_l ``[*T][B]``.
+        flattening: ν of the fit's flattened weights ``w^ν`` (per trial with ``num_trials``;
+            chosen by IWCV with ``flattening="iwcv"``); None in runs stored before it existed.
+        effective_sample_size: Kish's ``(Σ w^ν)² / Σ w^{2ν}`` of the fit's weights over all
+            rewarded samples so far (per trial), beside ``rewarded_transitions``.
     """
 
     iteration: int
@@ -38,6 +44,20 @@ class IterationRecord:
     performance: dict | None
     seconds: float
     theta: list = field(repr=False)
+    flattening: float | list | None = None
+    effective_sample_size: float | list | None = None
+
+    def summary(self, iterations: int) -> str:
+        """One log line: the iteration, its time, the rewards bought, ν and the ESS."""
+        nu, ess = (
+            "-" if v is None else _brief(torch.tensor(v))
+            for v in (self.flattening, self.effective_sample_size)
+        )
+        return (
+            f"iteration {self.iteration}/{iterations} done in {self.seconds:.2f} s: "
+            f"{self.rewarded_transitions} rewarded transitions per trial bought so far, "
+            f"flattening ν {nu}, effective sample size {ess}"
+        )
 
     def row(self) -> dict:
         """The iteration's numbers as one flat dict for JSON/CSV (θ and per-repeat J left out)."""
@@ -49,6 +69,16 @@ class IterationRecord:
             "chosen": self.chosen,
             "sampling_rule": self.sampling_rule,
             "j_mean": self.j_mean,
+            "flattening": self.flattening,
+            "effective_sample_size": self.effective_sample_size,
             "seconds": self.seconds,
             **(self.performance or {}),
         }
+
+
+def _brief(values: torch.Tensor) -> str:
+    """Per-trial numbers as one short string for a log line (the value, or mean and range)."""
+    flat = values.reshape(-1).to(torch.float64)
+    if flat.numel() == 1:
+        return f"{flat.item():.3g}"
+    return f"mean {flat.mean().item():.3g} [{flat.min().item():.3g}, {flat.max().item():.3g}]"

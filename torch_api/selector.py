@@ -198,14 +198,18 @@ class SamplingPolicySelector:
         lam: float,
         fit: str,
         device: torch.device | str | None,
+        collector: Callable | None = None,
     ) -> SamplingPolicySelector:
         """This selector with a loop's settings: a new selector, this one left as it is.
 
         :class:`~torch_api.iteration.ActivePolicyIteration` binds the selector it is given to
         its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
-        none. M_l (the schedule's, given per call: :meth:`select`'s ``num_episodes``) and the
-        sampling streams (its candidates bring its reward-free streams) are the loop's too: a
-        selector given any of these settings, or a ``generator``, is refused.
+        none, and the loop's ``collector`` where this selector has neither an env nor a
+        collector of its own (the reward-free episodes are then read from the user's collector
+        too, with the reward dropped). M_l (the schedule's, given per call:
+        :meth:`select`'s ``num_episodes``) and the sampling streams (its candidates bring its
+        reward-free streams) are the loop's too: a selector given any of these settings, or a
+        ``generator``, is refused.
         """
         given = sorted(k for k, v in self._loop_settings.items() if v is not None)
         if given:
@@ -213,8 +217,14 @@ class SamplingPolicySelector:
                 f"selector: {given} are the loop's settings (ActivePolicyIteration supplies "
                 "them); leave them unset on the selector you pass it"
             )
+        loops_collector = (  # the loop's collector, where this selector has no source of its own
+            collector is not None
+            and self.env is None
+            and self.collector is None
+            and not self.num_workers
+        )
         return SamplingPolicySelector(
-            env=self.env if self.env is not None else env,
+            env=None if loops_collector else self.env if self.env is not None else env,
             psi=psi,
             num_steps=num_steps,
             num_repeats=self.num_repeats,
@@ -223,7 +233,7 @@ class SamplingPolicySelector:
             max_design_bytes=self.max_design_bytes,
             num_workers=self.num_workers,
             fit=fit,
-            collector=self.collector,
+            collector=collector if loops_collector else self.collector,
             criterion=self.criterion,
         )
 
@@ -280,15 +290,22 @@ class SamplingPolicySelector:
         size = max(1, self.max_design_bytes // per_trial)
         return [slice(a, min(a + size, trials)) for a in range(0, trials, size)]
 
-    def _j_chunk(self, episodes, earlier, policy, trials: slice | None) -> torch.Tensor:
+    def _j_chunk(
+        self, episodes, earlier, policy, trials: slice | None, flattening=1.0
+    ) -> torch.Tensor:
         if trials is not None:
             episodes, policy = episodes[trials], policy.trial_slice(trials)
             earlier = None if earlier is None else earlier[trials]
+            if isinstance(flattening, torch.Tensor):
+                flattening = flattening[trials]
         if self.device is not None:
             episodes = episodes.to(self.device)
             earlier = None if earlier is None else earlier.to(self.device)
             policy = policy.to_device(self.device)
-        return self._j(episodes, earlier, policy, self.psi, self.lam).cpu()
+            if isinstance(flattening, torch.Tensor):
+                flattening = flattening.to(self.device)
+        j = self._j(episodes, earlier, policy, self.psi, self.lam, flattening=flattening)
+        return j.cpu()
 
     def select(
         self,
@@ -297,6 +314,7 @@ class SamplingPolicySelector:
         earlier_episodes: TensorDictBase | None = None,
         iteration: int = 0,
         num_episodes: int | None = None,
+        flattening: float | torch.Tensor = 1.0,
     ) -> Selection:
         """Run Algorithm 2 and return the chosen candidate with every J value.
 
@@ -312,6 +330,8 @@ class SamplingPolicySelector:
                 batch; :func:`~torch_api.data.as_episodes`).
             iteration: tag stored with the collected episodes.
             num_episodes: M of this call (default: the selector's ``num_episodes``).
+            flattening: ν of the flattened weights ``w^ν`` the fit uses (a number, or one per
+                trial ``[*T]``): J is then the error of that fit (docs/flattening.md, eq. F2).
         """
         if not candidates:
             raise ValueError("candidates must not be empty")
@@ -322,12 +342,12 @@ class SamplingPolicySelector:
         j_all = (
             torch.cat(
                 [
-                    self._j_chunk(episodes, earlier_episodes, evaluation_policy, trials)
+                    self._j_chunk(episodes, earlier_episodes, evaluation_policy, trials, flattening)
                     for trials in self._trial_chunks(episodes, earlier_episodes)
                 ]
             )
             if param_dims_of(evaluation_policy)
-            else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None)
+            else self._j_chunk(episodes, earlier_episodes, evaluation_policy, None, flattening)
         )
         j_mean = j_all.mean(-2)
         return Selection(

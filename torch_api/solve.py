@@ -11,6 +11,8 @@ import warnings
 
 import torch
 
+from torch_api.weights import flatten_weights
+
 __all__ = [
     "j_criterion",
     "j_from_moments",
@@ -189,6 +191,7 @@ def j_criterion(
     num_samples: torch.Tensor | int | None = None,
     sq_weights: torch.Tensor | None = None,
     dtype: torch.dtype = torch.float64,
+    flattening: float | torch.Tensor = 1.0,
 ) -> torch.Tensor:
     """The reward-free generalisation-error estimate J of a sampling set (eq. 40-46, Algorithm 2).
 
@@ -206,6 +209,9 @@ def j_criterion(
         sq_weights: ``Σ w²`` per row when rows are aggregates of identical rows
             (``benchmarks/_aggregate.py``); defaults to ``w²``.
         dtype: dtype of the computation.
+        flattening: ν of the flattened weights ``w^ν`` the fit uses (docs/flattening.md,
+            eq. F2): ``A`` takes ``w^ν``, ``C`` takes ``w^{2ν}``; ``u`` is the caller's (it
+            keeps the unflattened w). ν = 1 (default) is the paper's J, computed as before.
 
     Returns:
         J ``[...]`` in ``dtype``.
@@ -225,6 +231,9 @@ def j_criterion(
         raise ValueError(
             f"sq_weights must have shape {tuple(w.shape)}, got {tuple(sq_weights.shape)}"
         )
+    if sq_weights is not None and not (isinstance(flattening, (int, float)) and flattening == 1.0):
+        raise ValueError("sq_weights (aggregated rows) cannot be flattened: use flattening=1.0")
+    w = flatten_weights(w, flattening)  # (ν = 1: w itself)
     n = _normaliser(num_samples, x, dtype)
     n_mat = n[..., None, None] if n.ndim else n
     w = w.to(dtype)

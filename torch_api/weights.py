@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["per_decision_weights", "effective_sample_size"]
+__all__ = ["effective_sample_size", "flatten_weights", "per_decision_weights"]
 
 
 def per_decision_weights(
@@ -79,3 +79,39 @@ def effective_sample_size(weights: torch.Tensor) -> torch.Tensor:
     """
     total = weights.sum(-1)
     return total.pow(2) / weights.pow(2).sum(-1).clamp_min(torch.finfo(weights.dtype).tiny)
+
+
+def flatten_weights(weights: torch.Tensor, nu: float | torch.Tensor) -> torch.Tensor:
+    """Flattened importance weights ``w^ν`` (Hachiya et al. 2009, sample-reuse policy iteration).
+
+    ``ν = 1`` is the unbiased per-decision weight of eq. 21, ``ν = 0`` ignores the weights
+    (every sample 1), values in between trade the bias of the plain average for the variance
+    of the weighted one (docs/flattening.md, eq. F1). Zero weights (padding, or a step the
+    evaluation policy cannot take) stay zero for every ν, ``ν = 0`` included. Where ν = 1 the
+    weights are taken as they are (no power is computed), so results are bit-identical to the
+    unflattened ones.
+
+    Args:
+        weights: importance weights ``[...]`` (≥ 0).
+        nu: the flattening exponent ν in [0, 1]: a number, or a tensor broadcast against
+            ``weights`` (e.g. ``[T, 1]`` for one ν per trial of ``[T, n]`` weights).
+
+    Returns:
+        ``[...]`` weights ``w^ν`` in the dtype of ``weights``.
+
+    Example:
+        >>> flatten_weights(torch.tensor([0.0, 0.25, 4.0]), 0.5)
+        tensor([0.0000, 0.5000, 2.0000])
+    """
+    if isinstance(nu, torch.Tensor):
+        if ((nu < 0) | (nu > 1) | ~torch.isfinite(nu)).any():
+            raise ValueError(f"the flattening exponent ν must lie in [0, 1], got {nu.tolist()}")
+        nu = nu.to(weights.dtype)
+        powered = torch.where(weights > 0, weights.clamp_min(0).pow(nu), 0.0)
+        return torch.where(nu == 1, weights, powered)
+    nu = float(nu)
+    if not 0.0 <= nu <= 1.0:
+        raise ValueError(f"the flattening exponent ν must lie in [0, 1], got {nu}")
+    if nu == 1.0:
+        return weights
+    return torch.where(weights > 0, weights.clamp_min(0).pow(nu), torch.zeros_like(weights))

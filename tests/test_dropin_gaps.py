@@ -1,0 +1,161 @@
+"""The drop-in gaps a TorchRL user hit (issue #25, item 5), each on TorchRL's and Gymnasium's
+defaults: ``GymEnv("CartPole-v1")`` as it comes (one-hot ``int64`` actions), a real
+``Collector``, ``ProbabilisticActor``."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from test_torchrl_dropin import _actor, _whole_trajectories
+from torchrl.collectors import Collector
+from torchrl.envs import GymEnv, SerialEnv
+from torchrl.modules import ProbabilisticActor
+
+from envs.chain_walk import ChainWalkEnv
+from torch_api import (
+    ActivePolicyIteration,
+    GaussianActionBasis,
+    LinearQPolicy,
+    SamplingPolicySelector,
+    collect_episodes,
+)
+from torch_api.episodes import as_episodes
+
+
+def _basis() -> GaussianActionBasis:
+    return GaussianActionBasis(centers=torch.zeros(1, 4), tau=1.0, num_actions=2)
+
+
+def _prefers_right(**kwargs) -> LinearQPolicy:
+    theta = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64)  # Q(s, 1) > Q(s, 0)
+    return LinearQPolicy(basis=_basis(), theta=theta, epsilon=0.0, **kwargs)
+
+
+def test_a_policy_without_action_spec_refuses_to_act_in_the_users_rollout_and_collector():
+    """Before: it wrote the index 1 into GymEnv's one-hot env, which applied action 0 at every
+    step while the rollout recorded 1."""
+    env = GymEnv("CartPole-v1")
+    policy = _prefers_right()
+    with pytest.raises(ValueError, match="action_spec=env.action_spec"):
+        env.rollout(5, policy)
+    with pytest.raises(ValueError, match="action_spec=env.action_spec"):
+        collector = Collector(
+            env, policy, frames_per_batch=5, total_frames=5, auto_register_policy_transforms=False
+        )
+        next(iter(collector))
+    # with the env's spec the action it prefers is the one applied
+    rollout = GymEnv("CartPole-v1").rollout(5, _prefers_right(action_spec=env.action_spec))
+    assert rollout["action"].argmax(-1).eq(1).all()
+
+
+def test_a_batched_categorical_spec_is_accepted_as_action_spec():
+    env = ChainWalkEnv(batch_size=4, seed=0)  # a Categorical spec of shape [4]
+    policy = LinearQPolicy(
+        basis=GaussianActionBasis(centers=torch.zeros(1, 1), tau=1.0, num_actions=2),
+        theta=torch.ones(4),
+        epsilon=0.1,
+        action_spec=env.action_spec,
+    )
+    assert env.rollout(3, policy, break_when_any_done=False)["action"].shape == (4, 3)
+
+
+def test_as_episodes_checks_the_actions_against_action_spec():
+    """An index recorded in a one-hot env's rollout (what GymEnv applied as action 0) is refused;
+    the one-hot actions of the same env pass."""
+    env = GymEnv("CartPole-v1")
+    wrong = env.rollout(5, _prefers_right(one_hot=False))  # the user said index, env is one-hot
+    with pytest.raises(ValueError, match="not one-hot vectors"):
+        as_episodes(wrong, rewarded=True, action_spec=env.action_spec)
+    right = env.rollout(5, _prefers_right(action_spec=env.action_spec))
+    assert as_episodes(right, rewarded=True, action_spec=env.action_spec)["action"].eq(1).all()
+
+
+def test_a_categorical_actor_on_a_multi_row_one_hot_env_names_the_fix():
+    env = SerialEnv(3, lambda: GymEnv("CartPole-v1"))
+    net = TensorDictModule(torch.nn.Linear(4, 2), in_keys=["observation"], out_keys=["logits"])
+    actor = ProbabilisticActor(
+        net, in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="OneHotCategorical"):
+        collect_episodes(env, actor, num_episodes=3, num_steps=4, rewarded=True)
+    env.close()
+
+
+def _last_candidate(moments, lam):  # a criterion that always prefers the last candidate
+    k = moments.a.shape[-3]
+    return -torch.arange(k, dtype=torch.float64).expand(*moments.a.shape[:-3], k)
+
+
+def test_the_users_actor_is_an_extra_candidate_of_the_loop():
+    env = GymEnv("CartPole-v1")
+    actor = _actor(env)
+    api = ActivePolicyIteration(
+        env=env,
+        basis=_basis(),
+        schedule=(2, 2),
+        num_steps=8,
+        gamma=0.95,
+        selector=SamplingPolicySelector(num_repeats=1, criterion=_last_candidate),
+        candidate_offsets=(0.0, 0.5),
+        extra_candidates=[actor],
+    )
+    history = api.run()
+    assert [len(r.j_mean) for r in history] == [3, 3]  # K = 2 family candidates + the actor
+    assert [r.chosen for r in history] == [2, 2] and history[0].sampling_rule is None
+    bought = api.rewarded.episodes()
+    assert "sample_log_prob" in bought.keys() and bought.shape == (4, 8)
+    with pytest.raises(ValueError, match="extra_candidates"):
+        ActivePolicyIteration(
+            env=env, basis=_basis(), schedule=(1,), num_steps=4, gamma=0.9, extra_candidates=[actor]
+        )
+
+
+def test_the_loops_collector_also_collects_the_reward_free_episodes():
+    """The README's reading: ``collector=`` given to the loop serves the selector too (one
+    without an env or collector of its own)."""
+    calls = []
+
+    def make_collector(policy, num_episodes):
+        calls.append(num_episodes)
+        return _whole_trajectories(6)(policy, num_episodes)
+
+    api = ActivePolicyIteration(
+        env=GymEnv("CartPole-v1"),
+        basis=_basis(),
+        schedule=(2,),
+        num_steps=6,
+        gamma=0.95,
+        selector=SamplingPolicySelector(num_repeats=1),
+        candidate_offsets=(0.0, 0.5),
+        collector=make_collector,
+    )
+    api.run()
+    assert sorted(calls) == [2, 2, 2]  # K = 2 reward-free calls of Z·M = 2, one rewarded of M
+
+
+def test_a_factory_capped_by_at_most_rows_never_builds_more_rows():
+    """A toy run (Z = 2, K = 4, M = 2) asks a factory for 16 reward-free rows: 16 worker
+    processes with ``lambda rows: ParallelEnv(rows, make_env)``. Capped, it gets at most 2."""
+    from torch_api import at_most_rows
+
+    asked = []
+
+    def rows_of_cartpole(rows):
+        asked.append(rows)
+        return SerialEnv(rows, lambda: GymEnv("CartPole-v1"))
+
+    api = ActivePolicyIteration(
+        env=at_most_rows(rows_of_cartpole, 2),
+        basis=_basis(),
+        schedule=(2, 2),
+        num_steps=5,
+        gamma=0.95,
+        selector=SamplingPolicySelector(num_repeats=2),
+    )
+    api.run()
+    api.close()
+    assert asked and max(asked) <= 2
+    assert api.rewarded.episodes().shape == (4, 5)
+    assert api.reward_free.episodes().shape == (2 * 4 * 2 * 2, 5)  # Z·K·M_l per iteration
