@@ -130,8 +130,7 @@ def test_one_step_trials_0_to_3_of_4_and_of_8_agree(tmp_path):
     for trials in (4, 8):
         _cli("chain_walk_one_step.py", tmp_path / str(trials), "--trials", str(trials), *args)
     four, eight = (
-        json.loads((tmp_path / str(t) / "chain_walk_one_step.json").read_text())["results"]
-        for t in (4, 8)
+        json.loads((tmp_path / str(t) / "one_step.json").read_text())["results"] for t in (4, 8)
     )
     for base in four:
         for measure in ("j_prime", "g_true"):
