@@ -63,9 +63,6 @@ MAX_THREADS = 1024
 TINY_LAMBDA = 1e-10
 """The smallest λ (``torch_api._checks.TINY_LAMBDA``; a test keeps them equal)."""
 
-BYTES_PER_TRANSITION = 1024
-"""What one stored or collected transition costs in memory, with the designs built from it (a
-generous bound, for :func:`memory_error`)."""
 
 _DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
@@ -332,24 +329,6 @@ def out_dir_error(
             f"{flag} {str(folder)!r} has {free_mb:.0f} MB free, a run needs at least {need_mb} MB"
         )
     return None
-
-
-def memory_error(transitions: float, flags: str) -> str | None:
-    """Why a run that holds ``transitions`` transitions at once would not fit in the memory
-    available here (:data:`BYTES_PER_TRANSITION` each), naming the ``flags`` that set it."""
-    try:
-        with open("/proc/meminfo") as meminfo:
-            kib = next(int(line.split()[1]) for line in meminfo if line.startswith("MemAvailable"))
-        available = kib * 1024
-    except (OSError, StopIteration, ValueError):
-        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
-    need = transitions * BYTES_PER_TRANSITION
-    if need <= available:
-        return None
-    return (
-        f"a run of these sizes holds about {transitions:.3g} transitions ({need / 2**30:.3g} GiB), "
-        f"more than the {available / 2**30:.1f} GiB of memory available: lower {flags}"
-    )
 
 
 def logger_error(kind: str) -> str | None:

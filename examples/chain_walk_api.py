@@ -51,7 +51,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, SelectionOptions, field, memory_error, parse
+from _cli import ChunkOptions, SelectionOptions, field, parse
+from _sizes import memory_error
 
 
 @dataclass
