@@ -14,17 +14,17 @@ under a second (``tests/test_cli.py`` measures it).
 
 The same flag means the same thing in every script: ``--trials`` (independent trials, >= 1),
 ``--seed`` (the master seed), ``--out-dir`` (created if needed; checked writable, with room,
-before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue the
-runs stored in ``--out-dir``; ``--overwrite`` discards them, and without either a folder that
-holds runs is refused), ``--backend`` (where chunks of trials run). A script that cannot
-honour one of them declares it in ``unavailable``: the flag is refused with the reason, never
-silently ignored.
+before any work starts), ``--device`` (cpu or cuda[:N]), ``--resume`` (continue the runs
+stored in ``--out-dir``; ``--overwrite`` discards them; a folder holding runs needs one of them),
+``--threads`` (:class:`ThreadOptions`, 1 by default), ``--backend`` (where chunks of trials
+run). A script that cannot honour one of them declares it in ``unavailable``: the flag is
+refused with the reason, never silently ignored.
 
 The options of the paired experiments are declared once: :class:`RunOptions` (``--trials``,
 ``--seed``, ``--out-dir``, ``--resume``, ``--overwrite``, ``--threads``, ``--logger``),
 :class:`ChunkOptions` (those and ``--device``, ``--backend``, ``--chunks``, ``--workers``,
-``--ray-address``, ``--ray-cpus``) and :class:`SelectionOptions` (``--repeats``, ``--lam``);
-a script's ``Args`` extends those it takes.
+``--ray-address``, ``--ray-cpus``), :class:`SelectionOptions` (``--repeats``, ``--lam``); a
+script's ``Args`` extends those it takes.
 
 Validation is declarative where it can be: ``field(default, low=1)``, ``choices=...``; the
 rest goes into a script's ``check(args)`` that returns the first problem as one line. Every
@@ -63,7 +63,6 @@ MAX_THREADS = 1024
 TINY_LAMBDA = 1e-10
 """The smallest λ (``torch_api._checks.TINY_LAMBDA``; a test keeps them equal)."""
 
-
 _DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
 
@@ -96,27 +95,23 @@ class SelectionOptions:
     lam: float = field(1e-3, low=TINY_LAMBDA, help="λ, ridge regularisation")
 
 
+_THREADS = (
+    "torch intra-op threads (0: torch's default, one per core). 1 holds up under load: Figure "
+    "8 at 200 trials took 20.9 s with 1 and 190.8 s with 2 on 2 loaded cores"
+)
+
+
 @dataclasses.dataclass
 class ThreadOptions:
     """torch's thread count, in every script that computes with torch (:func:`use_threads`)."""
 
-    threads: int = field(
-        1,
-        low=0,
-        high=MAX_THREADS,
-        help=(
-            "torch intra-op threads (0: torch's default, one per core). 1 holds up under load: "
-            "Figure 8 at 200 trials took 20.9 s with 1 and 190.8 s with 2 on 2 loaded cores"
-        ),
-    )
+    threads: int = field(1, low=0, high=MAX_THREADS, help=_THREADS)
 
 
 def use_threads(args) -> None:
     """Set torch's intra-op threads from ``args.threads`` (0: leave torch's default)."""
     if args.threads > 0:
-        import torch
-
-        torch.set_num_threads(args.threads)
+        __import__("torch").set_num_threads(args.threads)
 
 
 @dataclasses.dataclass

@@ -129,13 +129,16 @@ def _check_loop_settings(
     collector,
     extra=(0, True),
     env_is_factory=True,
+    seed=0,
+    device=None,
+    candidate_offsets=(),
 ) -> tuple:
     """The plain settings of :class:`~torch_api.iteration.ActivePolicyIteration`, checked.
 
     ``store`` is ``(resume or overwrite, checkpoint_path)``; ``collector`` the loop's or the
     selector's collector factory, if any; ``extra`` is ``(number of extra candidates, active)``.
-    Returns ``(schedule, num_steps, knn_k, num_trials)``
-    normalised.
+    Returns ``(schedule, num_steps, knn_k, num_trials, seed, device)`` normalised
+    (``candidate_offsets`` is checked finite).
     """
     from torch_api.fit import FITS  # (imported here: _checks is imported by light modules)
     from torch_api.policies import TIE_BREAKS
@@ -166,4 +169,5 @@ def _check_loop_settings(
             "extra_candidates are offered to the selector: they need active mode (selector=) "
             "and work without num_trials (a TorchRL actor holds one set of parameters)"
         )
-    return schedule, num_steps, knn_k, num_trials
+    _check_finite("candidate_offsets", candidate_offsets)
+    return schedule, num_steps, knn_k, num_trials, _check_seed(seed), _check_device(device)

@@ -29,13 +29,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
-from torch_api._checks import (
-    _check_device,
-    _check_finite,
-    _check_loop_settings,
-    _check_seed,
-    _initial_theta,
-)
+from torch_api._checks import _check_loop_settings, _initial_theta
 from torch_api.actions import ActionEncoding
 from torch_api.buffer import EpisodeBuffer, _warm_start
 from torch_api.buying import RewardBuying
@@ -96,8 +90,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             ``selector=SamplingPolicySelector(env=lambda rows: make_env(rows), num_repeats=5)``
             (an env whose batch is ``T·Z·K·M_l`` rolls out once).
         lam: λ > 0.
-        psi_mode: ``"grouped"`` (finite states), ``"single"`` (the paper's continuous choice)
-            or ``"knn"``; ``knn_k`` its k.
+        psi_mode: ``"grouped"`` (finite states), ``"single"`` (continuous) or ``"knn"`` (k=knn_k).
         initial_theta: θ_0 of pi_1 (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67).
         epsilon_schedule: ε of pi_l as a function of l (default ``0.15 / l``).
         candidate_offsets: candidates ε_l + offset (eq. 59).
@@ -235,7 +228,7 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             candidate_offsets=candidate_offsets,
             beta=beta,
         )
-        schedule, num_steps, knn_k, num_trials = _check_loop_settings(
+        schedule, num_steps, knn_k, num_trials, seed, device = _check_loop_settings(
             tie_break=tie_break,
             schedule=schedule,
             num_steps=num_steps,
@@ -250,9 +243,10 @@ class ActivePolicyIteration(CandidatePolicies, RewardBuying, DurableState):
             collector=collector or getattr(selector, "collector", None),
             extra=(len(extra_candidates), selector is not None),
             env_is_factory=not isinstance(env, EnvBase),
+            seed=seed,
+            device=device,
+            candidate_offsets=candidate_offsets,
         )
-        seed, device = _check_seed(seed), _check_device(device)
-        candidate_offsets = _check_finite("candidate_offsets", candidate_offsets)
         self.extra_candidates = tuple(extra_candidates)
         self._collect = rollouts_or(collector)  # the rewarded episodes' source, chosen once
         self.on_checkpoint = on_checkpoint
