@@ -27,6 +27,18 @@ def start_example(script: str, *args: str) -> subprocess.Popen:
     )
 
 
+def run_example(script: str, *args: str, timeout: float = 300) -> str:
+    """``examples/<script> args`` run to its end (as :func:`start_example`); its stdout. A
+    non-zero exit fails the test with the end of the script's output."""
+    proc = start_example(script, *args)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, f"{script} failed:\n{out[-3000:]}\n{err[-3000:]}"
+    return out
+
+
 def wait_for_episodes(store: Path, rows: int, proc: subprocess.Popen) -> None:
     """Until the run at ``store`` holds at least ``rows`` bought episode rows (committed)."""
     from torch_api.store import RunStore, StoreError

@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from _processes import run_example  # (tests/ is on sys.path)
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.basis import GaussianActionBasis
@@ -23,7 +21,6 @@ from torch_api.dispatch import trial_seeds
 from torch_api.iteration import ActivePolicyIteration
 from torch_api.selector import SamplingPolicySelector
 
-ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
 
 
@@ -87,17 +84,7 @@ def test_trials_of_a_batch_learn_what_they_learn_alone_or_in_any_batch():
 
 
 def _cli(script: str, out: Path, *args: str) -> None:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / script), *args, "--out-dir", str(out)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
+    run_example(script, *args, "--out-dir", str(out))
 
 
 def _rows_of_first_trials(path: Path, count: int) -> list[tuple]:

@@ -10,9 +10,7 @@ import dataclasses
 import importlib.util
 import json
 import math
-import os
 import signal
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,25 +19,16 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 from _harness import COLUMNS, read_results  # noqa: E402
-from _processes import start_example, wait_for_episodes  # noqa: E402  (tests/ is on sys.path)
+from _processes import (  # noqa: E402  (tests/ is on sys.path)
+    run_example,
+    start_example,
+    wait_for_episodes,
+)
 
 pytestmark = pytest.mark.slow
 
 
-def _run(script: str, *args: str) -> str:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    env["OMP_NUM_THREADS"] = "1"  # tiny tensors: one thread is faster (much, on a busy machine)
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / script), *args],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, f"{script} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
-    return done.stdout
+_run = run_example  # tiny budgets, one thread (much faster on a busy machine)
 
 
 def _numbers(value):
