@@ -152,12 +152,15 @@ def main() -> None:
     parser.add_argument("--trials", type=int, nargs="+", default=[100, 1000, 10000])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--startup-repeats", type=int, default=3)
+    parser.add_argument(
+        "--count-trials", type=int, default=10, help="trials of the run whose draws are counted"
+    )
     parser.add_argument("--out", type=Path, default=None, help="also write the table as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(machine_info())
     startup = startup_seconds(args.startup_repeats)
-    words, calls = count_draws(10)
+    words, calls = count_draws(args.count_trials)
     rows = []
     print(
         "| trials | wall s | compute s | start-up s | rng floor s | algebra floor s | peak RSS MB |"
@@ -170,7 +173,7 @@ def main() -> None:
             "trials": trials,
             **run,
             "startup_s": startup,
-            "rng_floor_s": rng_floor(words * trials // 10, calls),
+            "rng_floor_s": rng_floor(words * trials // args.count_trials, calls),
             "algebra_floor_s": algebra_floor(trials),
         }
         rows.append(row)

@@ -94,10 +94,10 @@ def _rows_of_first_trials(path: Path, count: int) -> list[tuple]:
 
 
 CLIS = {
-    "chain_walk_api": ("--iterations", "2", "--test-episodes", "3", "--test-steps", "10"),
+    "chain_walk_api": ("--iterations", "1", "--test-episodes", "3", "--test-steps", "10"),
     "gym_drop_in": ("--schedule", "2,2", "--steps", "10", "--repeats", "2", "--test-episodes", "2")
     + ("--test-steps", "20"),
-    "train_batting": ("--iterations", "2", "--repeats", "2", "--schedule", "decreasing"),
+    "train_batting": ("--iterations", "1", "--repeats", "2", "--schedule", "decreasing"),
 }
 
 
