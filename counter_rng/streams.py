@@ -26,6 +26,7 @@ integers (e.g. trial, iteration, role) with the same Philox function, vectorised
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 
 import torch
@@ -42,7 +43,7 @@ _TWO_PI = 2.0 * math.pi
 
 def fresh_key() -> int:
     """A key from fresh entropy (the operating system's), leaving torch's generators alone."""
-    return int.from_bytes(__import__("os").urandom(8), "little") >> (64 - KEY_BITS)
+    return int.from_bytes(os.urandom(8), "little") >> (64 - KEY_BITS)
 
 
 def _key_words(key: int) -> tuple[int, int]:

@@ -246,11 +246,13 @@ def _grouped_moments(pool, policy, psi: PsiHat, split: int, num_candidates: int,
     def moments(weights: torch.Tensor, group: torch.Tensor) -> tuple[torch.Tensor, ...]:
         rows = x.unsqueeze(-3) if weights.ndim > x.ndim - 1 else x  # [..., (1,) G, B]
         w_nu = flatten_weights(weights, _per_trial(flattening, weights))
-        out = []
-        for w in (w_nu, w_nu.pow(2), weights):  # A's, C's and Ũ's weights (eq. F2)
-            sums = group_sums(w, group, width)  # [..., (K,) G]
-            out.append((rows * sums.unsqueeze(-1)).mT @ rows)
-        return tuple(out)
+
+        def summed(w: torch.Tensor) -> torch.Tensor:  # Σ_g (Σ_{i∈g} w_i) x_g x_gᵀ
+            return (rows * group_sums(w, group, width).unsqueeze(-1)).mT @ rows
+
+        # A's, C's and Ũ's weights: w^ν, w^2ν, w (eq. F2); at ν = 1 Ũ's sum is A's
+        a = summed(w_nu)
+        return a, summed(w_nu.pow(2)), a if w_nu is weights else summed(weights)
 
     own = (*lead, num_candidates, split // num_candidates)
     own_w, own_group = design.w[..., :split].reshape(own), design.group[..., :split].reshape(own)

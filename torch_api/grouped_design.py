@@ -15,6 +15,7 @@ The moments the criterion needs are then sums over groups, ``Σ_g (Σ_{i∈g} w_
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -22,7 +23,7 @@ from tensordict import TensorDictBase
 
 from torch_api.design import taken_probs
 from torch_api.episodes import taken_sample_probs
-from torch_api.psi import PsiHat, state_action_groups
+from torch_api.psi import PsiHat, expected_next_features, state_action_groups
 from torch_api.weights import per_decision_weights
 
 __all__ = ["GroupedDesign", "grouped_design", "group_sums"]
@@ -74,10 +75,7 @@ def grouped_design(episodes: TensorDictBase, policy, psi: PsiHat) -> GroupedDesi
     if psi.mode != "grouped":
         raise ValueError(f"grouped_design needs psi_mode 'grouped', got {psi.mode!r}")
     *lead, m, steps = episodes.shape
-    n = m * steps
-    items = 1
-    for size in lead:
-        items *= size
+    n, items = m * steps, math.prod(lead)
     mask = episodes["mask"].reshape(items, n)
     obs = episodes["observation"].reshape(items, n, -1).to(torch.float64)
     next_obs = episodes["next", "observation"].reshape(items, n, -1).to(torch.float64)
@@ -100,15 +98,16 @@ def grouped_design(episodes: TensorDictBase, policy, psi: PsiHat) -> GroupedDesi
     basis = psi.basis
     phi = basis.phi(rep_obs, rep_action).reshape(items, width, -1)  # [L, G, B]
     next_probs = policy.action_probs(rep_next)
-    if hasattr(basis, "expected_phi"):
+    if hasattr(basis, "expected_phi"):  # the basis's block-structured form, as in PsiHat
         next_features = basis.expected_phi(rep_next, next_probs)
     else:
-        next_features = (next_probs.unsqueeze(-1) * basis.phi_all(rep_next)).sum(-2)
+        next_features = expected_next_features(basis.phi_all(rep_next), next_probs)
     next_features = next_features.reshape(items * next_width, -1)  # [L·G', B]
 
     # Σ over each group's kept transitions of the next-state term, by (group, next state) pair
     item = torch.arange(items, device=mask.device).repeat_interleave(n)
-    pair = (item * width + group) * next_width + nxt
+    slot = item * width + group  # each sample's (item, group) row of the [L·G] tables
+    pair = slot * next_width + nxt
     pairs, pair_of = torch.unique(pair[keep.reshape(-1)], return_inverse=True)
     pair_count = torch.bincount(pair_of, minlength=pairs.numel()).to(torch.float64)
     pair_group = pairs // next_width  # item·G + group slot
@@ -116,12 +115,12 @@ def grouped_design(episodes: TensorDictBase, policy, psi: PsiHat) -> GroupedDesi
     bootstrap = torch.zeros(items * width, phi.shape[-1], dtype=torch.float64, device=phi.device)
     bootstrap.index_add_(0, pair_group, pair_count.unsqueeze(-1) * next_features[pair_next])
     members = torch.zeros(items * width, dtype=torch.float64, device=phi.device)
-    members.index_add_(0, item * width + group, mask.reshape(-1).to(torch.float64))
+    members.index_add_(0, slot, mask.reshape(-1).to(torch.float64))
     mean = bootstrap / members.clamp_min(1).unsqueeze(-1)
     x = phi.to(torch.float64) - psi.gamma * mean.reshape(items, width, -1)
 
     probs = policy.action_probs(rep_obs).reshape(items, width, -1)  # pi(·|s) of each group
-    target = probs.reshape(items * width, -1)[item * width + group].reshape(*mask.shape, -1)
+    target = probs.reshape(items * width, -1)[slot].reshape(*mask.shape, -1)
     target = taken_probs(target, action).reshape(episodes.shape)
     w = per_decision_weights(target, taken_sample_probs(episodes), episodes["mask"])
     return GroupedDesign(
