@@ -13,7 +13,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def start_example(script: str, *args: str) -> subprocess.Popen:
-    """``examples/<script> args`` in a process of its own (one thread; pipes for its output)."""
+    """``examples/<script> args`` in a process of its own (one thread; pipes for its output),
+    the leader of a process group of its own: ``os.killpg(proc.pid, ...)`` reaches the worker
+    processes it forks as well."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     env["OMP_NUM_THREADS"] = "1"
@@ -24,6 +26,7 @@ def start_example(script: str, *args: str) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,
     )
 
 

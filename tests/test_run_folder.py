@@ -23,20 +23,21 @@ def _files(folder: Path) -> dict[str, int]:
 
 
 def test_overwrite_while_another_run_writes_the_folder_is_refused(tmp_path):
-    """Run A is on its 2nd store (held still by SIGSTOP, a real process); B with --overwrite
+    """Run A is on its 2nd store (held still by SIGSTOP to its process group: the parent and
+    the worker processes it forked); B with --overwrite
     is refused naming the folder, and touches nothing: it discarded A's finished store and
     bought it again before (every reward bought twice)."""
     args = (*TINY, "--out-dir", str(tmp_path))
     first = start_example("chain_walk_api.py", *args)
     wait_for_episodes(tmp_path / "checkpoints" / "decreasing_PL.db", 1, first)
-    os.kill(first.pid, signal.SIGSTOP)
+    os.killpg(first.pid, signal.SIGSTOP)
     try:
         before = _files(tmp_path / "checkpoints")
         second = start_example("chain_walk_api.py", *args, "--overwrite")
         _, err = second.communicate(timeout=240)
         after = _files(tmp_path / "checkpoints")
     finally:
-        os.kill(first.pid, signal.SIGCONT)
+        os.killpg(first.pid, signal.SIGCONT)
     _, first_err = first.communicate(timeout=240)
     assert first.returncode == 0, first_err[-2000:]
     assert second.returncode == 1, err[-2000:]
