@@ -128,9 +128,9 @@ from counter_rng import CounterStreams, derive_keys
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from envs.chain_walk.exact import expected_discounted_return
 from envs.chain_walk.model import GAMMA, N_ACTIONS, chain_walk_model, optimal_policy
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 from torch_api.policies import LinearQPolicy
-from torch_api.policy_base import sample_actions
+from torch_api.policies.base import sample_actions
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 MEASURES = ("test_return", "exact_return", "percent_optimal")

@@ -181,9 +181,10 @@ from _weight_warnings import kept_weight_warnings, report_weight_warnings
 
 from counter_rng import derive_keys
 from envs.batting import MAX_STEPS, BattingEnv
-from torch_api.data import REWARD_KEY, collect_episodes
-from torch_api.dispatch import threads_per_worker
+from torch_api.collection import collect_episodes
+from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
+from torch_api.runs.dispatch import threads_per_worker
 from torch_api.streams import STREAMS
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7

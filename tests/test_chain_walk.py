@@ -512,9 +512,9 @@ def test_walk_draws_the_numbers_of_a_rollout():
     """``env.walk`` (no TorchRL machinery) gives the states and rewards of ``env.rollout``
     with the same policy and streams, bit for bit."""
     from counter_rng import CounterStreams
-    from torch_api.collect import collect_episodes
+    from torch_api.collection.collect import collect_episodes
     from torch_api.policies import TabularPolicy
-    from torch_api.policy_base import sample_actions
+    from torch_api.policies.base import sample_actions
 
     trials, m, n = 3, 4, 12
     table = torch.rand(

@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import torch_api.solve
+import torch_api.core.solve
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.criterion import j_eq46
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
-from torch_api.store import (
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.criterion import j_eq46
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.store import (
     CorruptRunError,
     RunExistsError,
     RunInUseError,
@@ -198,7 +198,7 @@ def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monke
         raise ValueError(f"A + λI is not positive definite (λ = {lam})")
 
     # (a λ small enough to fail on a few samples, below 1e-10, is refused by the constructor)
-    monkeypatch.setattr(torch_api.solve, "_cholesky", no_factor)
+    monkeypatch.setattr(torch_api.core.solve, "_cholesky", no_factor)
     with pytest.raises(ValueError, match="not positive definite"):
         api.run()  # bought, then the fit fails
     api.close()
@@ -223,7 +223,7 @@ def test_a_second_process_on_the_same_run_is_refused_naming_the_holder(tmp_path)
             "-c",
             textwrap.dedent(f"""
                 import sys, time
-                from torch_api.store import RunStore
+                from torch_api.runs.store import RunStore
                 store = RunStore({str(path)!r}, config={{}})
                 print("holding", flush=True)
                 sys.stdin.readline()
@@ -281,7 +281,7 @@ _READ_ONLY_CHECK = """
 import sys
 sys.path.insert(0, {tests!r})
 from test_checkpoint import _CountingChain, _api
-from torch_api.store import StoreWriteError
+from torch_api.runs.store import StoreWriteError
 try:
     _api({path!r}, env=_CountingChain)
 except StoreWriteError as error:
@@ -478,7 +478,7 @@ def test_malformed_content_is_refused_naming_the_path(tmp_path, sql):
 
 def test_tampered_rows_with_recomputed_digests_are_still_bounded(tmp_path):
     """A blob that claims a huge tensor is refused before anything that size is built."""
-    from torch_api.store import _digest
+    from torch_api.runs.store import _digest
 
     path = tmp_path / "run.db"
     with _api(path) as api:
@@ -572,7 +572,8 @@ def test_a_huge_lambda_warns():
 
 
 def test_nan_sampling_probabilities_are_refused():
-    from torch_api.data import EpisodeBuffer, collect_episodes
+    from torch_api.collection import collect_episodes
+    from torch_api.data import EpisodeBuffer
     from torch_api.policies import LinearQPolicy
 
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
@@ -590,7 +591,7 @@ def test_nan_sampling_probabilities_are_refused():
 def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
     """Even with a matching checksum (anyone who can write the file can compute one), a row
     holding a pickle is refused by the decoder and its code never runs."""
-    from torch_api.store import _digest
+    from torch_api.runs.store import _digest
 
     mark = tmp_path / "mark"
     monkeypatch.setenv("PAYLOAD_MARK", str(mark))

@@ -23,7 +23,7 @@ from torch_api import (
     collect_episodes,
 )
 from torch_api.policies import greedy_actions
-from torch_api.store import RunStore
+from torch_api.runs.store import RunStore
 
 
 def cartpole():

@@ -133,16 +133,16 @@ def _check_loop_settings(
     device=None,
     candidate_offsets=(),
 ) -> tuple:
-    """The plain settings of :class:`~torch_api.iteration.ActivePolicyIteration`, checked.
+    """The plain settings of :class:`~torch_api.loop.iteration.ActivePolicyIteration`, checked.
 
     ``store`` is ``(resume or overwrite, checkpoint_path)``; ``collector`` the loop's or the
     selector's collector factory, if any; ``extra`` is ``(number of extra candidates, active)``.
     Returns ``(schedule, num_steps, knn_k, num_trials, seed, device)`` normalised
     (``candidate_offsets`` is checked finite).
     """
-    from torch_api.fit import FITS  # (imported here: _checks is imported by light modules)
+    from torch_api.core.fit import FITS  # (imported here: _checks is imported by light modules)
+    from torch_api.core.psi import PSI_MODES
     from torch_api.policies import TIE_BREAKS
-    from torch_api.psi import PSI_MODES
 
     _check_choice("tie_break", tie_break, TIE_BREAKS)
     schedule = _check_schedule(schedule)
