@@ -98,7 +98,7 @@ def test_resume_after_rewards_bought_but_not_fitted_buys_nothing_again(tmp_path,
     path = tmp_path / "run.db"
     first = _api(path, env=_CountingChain)
     first.step()
-    first._buy()  # rewards of iteration 2 bought and committed, θ_2 not yet fitted
+    first.buy()  # rewards of iteration 2 bought and committed, θ_2 not yet fitted
     first.close()
     bought = _CountingChain.measured
     assert bought == 3 * (3 + 2) * 10
@@ -123,14 +123,20 @@ def test_one_episode_at_a_time_resumes_mid_iteration(tmp_path):
     reference = _api(rewarded_slice="episode")
     reference.run()
     path = tmp_path / "run.db"
-    first = _api(path, rewarded_slice="episode", env=_CountingChain)
-    first.step()
-    first._select(2, 2)
-    first._buy_slice(2, [0], reseed=True)  # episode 0 of iteration 2 bought, 1 not yet
+    commits = []
+
+    def stop_at_seventh(api):  # iteration 1's selection, 3 episodes and record; then 2's
+        commits.append(api.iteration)
+        if len(commits) == 7:
+            raise KeyboardInterrupt
+
+    first = _api(path, rewarded_slice="episode", env=_CountingChain, on_checkpoint=stop_at_seventh)
+    with pytest.raises(KeyboardInterrupt):  # episode 0 of iteration 2 bought, 1 not yet
+        first.run()
     first.close()
     before = _CountingChain.measured
     resumed = _api(path, rewarded_slice="episode", env=_CountingChain, resume=True)
-    assert sorted(resumed._partial) == [0]
+    assert sorted(resumed.buyer.bought) == [0]
     resumed.run()
     assert _CountingChain.measured - before == 3 * (1 + 2) * 10  # episode 1, then iteration 3
     _same_run(reference, resumed)
@@ -206,7 +212,7 @@ def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monke
     assert len(RunStore.read(path).episodes[1]) == 3  # the bought rewards are stored
     before = _CountingChain.measured
     resumed = _api(path, mode="passive", resume=True, device="cpu", env=_CountingChain)
-    assert resumed._pending is not None
+    assert resumed.pending is not None
     resumed.run()
     assert _CountingChain.measured - before == 3 * (2 + 2) * 10  # iteration 1 not bought again
     reference = _api(mode="passive")
@@ -367,7 +373,7 @@ def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
     path = tmp_path / "run.db"
     with _api(path) as api:
         api.step()
-        api._buy()
+        api.buy()
     good = path.read_bytes()
     reference = _api()
     reference.load(path)
@@ -390,7 +396,7 @@ def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
         ea, eb = target.rewarded.episodes(), reference.rewarded.episodes()
         for key in ea.keys(True, True):
             assert torch.equal(ea[key], eb[key])
-        assert target._pending["chosen"].tolist() == reference._pending["chosen"].tolist()
+        assert target.pending.chosen.tolist() == reference.pending.chosen.tolist()
         same += 1
     print(f"{refused} of {tries} flips refused, {same} in unused bytes changed nothing")
     assert refused + same == tries and refused > 0
@@ -519,7 +525,7 @@ def test_one_bad_reward_is_named_and_the_valid_episodes_are_stored(tmp_path):
     assert sorted(stored.episodes[2]) == [0]  # episode 0 of every trial is kept
     _NanChain.broken = False
     resumed = _api(path, resume=True, env=_NanChain)  # a repaired env buys episode 1 again
-    assert sorted(resumed._partial) == [0]
+    assert sorted(resumed.buyer.bought) == [0]
     resumed.run()
     assert resumed.rewarded_transitions == (3 + 2 + 2) * 10
 

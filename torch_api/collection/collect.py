@@ -56,6 +56,11 @@ class EnvPerBatch:
     def is_factory(self) -> bool:
         return not isinstance(self.env, EnvBase)
 
+    @property
+    def built(self) -> dict[int, EnvBase]:
+        """The envs the factory built so far, by batch size (a copy)."""
+        return dict(self._built)
+
     def __call__(self, batch: int) -> EnvBase:
         """The env for ``batch`` rows (the fixed env whatever ``batch``, if not a factory)."""
         if not self.is_factory:
@@ -239,18 +244,17 @@ def collect_with_collector(
                 first = batch["action"].reshape(-1, *row_spec.shape)[0]
                 check_actions(row_spec, first, who=f"the collector's policy {_name(policy)}")
             buffer.extend(batch, validate=validate)
-            if len(buffer) - len(buffer._open) >= num_episodes:
+            if len(buffer.whole()) >= num_episodes:
                 break
     finally:
         shutdown = getattr(collector, "shutdown", None)
         if shutdown is not None:
             shutdown()
-    if len(buffer) - len(buffer._open) < num_episodes:
+    closed = buffer.whole()
+    if len(closed) < num_episodes:
         raise ValueError(
-            f"the collector ended after {len(buffer) - len(buffer._open)} whole episodes, "
-            f"{num_episodes} were asked for"
+            f"the collector ended after {len(closed)} whole episodes, {num_episodes} were asked for"
         )
-    closed = [i for i in range(len(buffer)) if i not in set(buffer._open.values())]
     episodes = buffer.episodes()[torch.tensor(closed[:num_episodes])]
     if episodes.shape[-1] > num_steps:
         longest = int(episodes["mask"].sum(-1).max())

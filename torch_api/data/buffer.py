@@ -291,6 +291,21 @@ class EpisodeBuffer:
         if state.get("episodes") is not None:
             self.extend(TensorDict.from_dict(state["episodes"], batch_size=state["batch_size"]))
 
+    def whole(self) -> list[int]:
+        """Indices of the held episodes that are whole: none awaits its continuation from a
+        next collector batch (:meth:`extend` joins a cut trajectory with it)."""
+        going_on = set(self._open.values())
+        return [i for i in range(len(self)) if i not in going_on]
+
+    @classmethod
+    def holding(cls, warm: TensorDictBase | None, *, capacity: int) -> EpisodeBuffer:
+        """A rewarded buffer for ``capacity`` more episodes, holding ``warm`` ``[*T, M_0, N]``
+        (a warm start, or None) first."""
+        buffer = cls(rewarded=True, capacity=capacity + (0 if warm is None else warm.shape[-2]))
+        if warm is not None:
+            buffer.extend(warm)
+        return buffer
+
 
 def _warm_start(data, trial_dims: tuple[int, ...]) -> TensorDictBase | None:
     """``initial_episodes`` in the library's format ``[*T, M, N]`` (None: no warm start)."""

@@ -1,12 +1,51 @@
-"""What one iteration of Algorithm 1 leaves behind: :class:`IterationRecord`."""
+"""What an iteration of Algorithm 1 leaves: its :class:`Choice`, its :class:`IterationRecord`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 
-__all__ = ["IterationRecord"]
+__all__ = ["Choice", "IterationRecord"]
+
+
+@dataclass
+class Choice:
+    """Step 1's outcome for iteration l: the sampling policy chosen, committed before its rewards.
+
+    Attributes:
+        chosen: the candidate's index, long ``[*T]`` (0: pi_l itself; always 0 when passive).
+        sampling_rule: its ε (or β) ``[*T]``, or None for one of the user's own candidates.
+        j_mean: J' ``[*T][K]`` (active), else None; j_all: J ``[*T][Z][K]``, else None.
+        reward_free_transitions: reward-free transitions collected for it (all trials).
+        seconds: wall time of the choice.
+    """
+
+    chosen: torch.Tensor
+    sampling_rule: torch.Tensor | None
+    j_mean: list | None
+    j_all: list | None
+    reward_free_transitions: int
+    seconds: float
+
+    def row(self) -> dict:
+        """The choice as the store keeps it (JSON-able)."""
+        return {
+            f.name: v.tolist() if isinstance(v := getattr(self, f.name), torch.Tensor) else v
+            for f in fields(self)
+        }
+
+    @classmethod
+    def from_row(cls, row: dict) -> Choice:
+        """The choice of a stored row (:meth:`row`)."""
+        rule = row["sampling_rule"]  # (None: an extra candidate)
+        return cls(
+            **{
+                **row,
+                "chosen": torch.tensor(row["chosen"], dtype=torch.long),
+                "sampling_rule": None if rule is None else torch.tensor(rule, dtype=torch.float64),
+            }
+        )
 
 
 @dataclass
@@ -46,6 +85,23 @@ class IterationRecord:
     theta: list = field(repr=False)
     flattening: float | list | None = None
     effective_sample_size: float | list | None = None
+
+    @classmethod
+    def of(cls, iteration: int, choice: Choice, fitted, **numbers) -> IterationRecord:
+        """The record of iteration l from its :class:`Choice`, its fit
+        (:class:`~torch_api.core.fit.Fit`) and the loop's counts (``numbers``)."""
+        rule = choice.sampling_rule
+        return cls(
+            iteration=iteration,
+            chosen=choice.chosen.tolist(),
+            sampling_rule=None if rule is None else rule.tolist(),
+            j_mean=choice.j_mean,
+            j_all=choice.j_all,
+            theta=fitted.theta.cpu().tolist(),
+            flattening=fitted.flattening.tolist(),
+            effective_sample_size=fitted.ess.tolist(),
+            **numbers,
+        )
 
     def summary(self, iterations: int) -> str:
         """One log line: the iteration, its time, the rewards bought, ν and the ESS."""

@@ -2,8 +2,8 @@
 
 A family says, for iteration l, the rule of the evaluation policy pi_l (ε of an ε-greedy
 policy, or β of a softmax one) and the K rules of the sampling-policy candidates (eq. 59), the
-first of which is pi_l's. :class:`~torch_api.loop.iteration.ActivePolicyIteration` builds its
-policies with ``policy.with_rule(**{family.key: rule})``. A new family is a new small class
+first of which is pi_l's. The loop builds its policies with ``policy.with_rule(**{family.key:
+rule})`` (:class:`~torch_api.loop.policies.LoopPolicies`). A new family is a new small class
 with the same four members, not a new branch of the loop.
 """
 
@@ -13,13 +13,10 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from torch_api.policies import LinearQPolicy
-
 __all__ = [
     "IMPROVEMENTS",
     "PAPER_EPSILON_OFFSETS",
     "SOFTMAX_CANDIDATE_SCALES",
-    "CandidatePolicies",
     "EpsilonGreedyFamily",
     "SoftmaxFamily",
     "candidate_epsilons",
@@ -133,56 +130,3 @@ def make_family(
     if improvement == "softmax":
         return SoftmaxFamily(beta=beta)
     return EpsilonGreedyFamily(epsilon_schedule=epsilon_schedule, offsets=candidate_offsets)
-
-
-class CandidatePolicies:
-    """The policies of :class:`~torch_api.loop.iteration.ActivePolicyIteration` built from its
-    family (a mixin: it reads the loop's θ, basis and streams): pi_l, the K candidates of the
-    coming iteration (pure: sampling streams are given per use with ``with_streams``), and the
-    evaluation policy with streams of its own."""
-
-    def _policy(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
-        """The evaluation policy pi_l of θ (ε-greedy with ε = epsilon_schedule(l), or softmax)."""
-        rule = self.family.evaluation_rule(iteration)
-        return LinearQPolicy(
-            basis=self.basis,
-            theta=theta,
-            tie_break=self.tie_break,
-            action_spec=self._action_encoding,
-            **rule,
-        )
-
-    def initial_policy(self) -> LinearQPolicy:
-        """pi_1, the policy of θ_0, whatever the run's progress (e.g. after a resume)."""
-        return self._policy(self._initial_theta.expand_as(self.theta).clone(), 1)
-
-    def _candidate_rules(self) -> torch.Tensor:
-        """ε (or β) of the K candidates of the coming iteration (eq. 59); the first is pi_l's."""
-        return self.family.candidate_rules(self.iteration + 1)
-
-    def _with_rule(self, rule: torch.Tensor) -> LinearQPolicy:
-        return self.policy.with_rule(**{self.family.key: rule})
-
-    def candidates(self) -> list[LinearQPolicy]:
-        """The K sampling-policy candidates of the coming iteration (eq. 59); the first is pi_l."""
-        return [self._with_rule(rule) for rule in self._candidate_rules()]
-
-    def _reward_free_candidates(self) -> list[LinearQPolicy]:
-        """The candidates drawing from the reward-free streams of the coming iteration (one
-        for all K, shared), not from pi_l's (which the rewarded episodes use): AL's selection
-        then leaves the rewarded draws as PL's."""
-        streams = self.streams.sampling(self.iteration + 1, "reward_free_policy")
-        return [candidate.with_streams(streams) for candidate in self.candidates()]
-
-    def block_seeds(self, iteration: int, stream: str) -> list[int]:
-        """Per-trial seeds of one stream of iteration l (``trial_seeds`` runs only)."""
-        return self.streams.block_seeds(iteration, stream)
-
-    def _evaluation_policy(self, iteration: int) -> tuple[LinearQPolicy, int]:
-        """pi_{l+1} with sampling streams of its own, and the evaluation seed of iteration l.
-
-        The streams depend on (seed, l) alone, so a resumed run measures what an
-        uninterrupted one would.
-        """
-        seed = self.streams.run_seed(iteration, "evaluation")
-        return self.policy.with_streams(self.streams.sampling(iteration, "evaluation")), seed
