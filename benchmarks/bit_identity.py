@@ -4,7 +4,9 @@ Runs Figure 8 at 100 trials (both tie rules), the batting main job at 4 trials, 
 experiment at 20 trials and the TorchRL pipeline (small budget) from one checkout, writing
 each run's CSV/JSON under ``--out``; ``compare`` then checks two such folders file by file.
 CSV files must be equal byte for byte; JSON files must be equal once the wall times (keys
-naming ``seconds``) and the output folder (``out_dir``) are left out, every number exact.
+naming ``seconds``) and the output folder (``out_dir``) are left out, every number exact; the
+stored runs (``checkpoints/*.db``) must record the same settings (what a resume checks) and
+the same θ_l of every iteration.
 
     python benchmarks/bit_identity.py run --root /tmp/before --out /tmp/bit_before
     python benchmarks/bit_identity.py run --out /tmp/bit_after
@@ -94,8 +96,25 @@ def _compare(before: Path, after: Path) -> bool:
             equal, how = a == b, "equal to the byte"
         print(f"{name}: {how if equal else 'DIFFERENT'}")
         same &= equal
+    for name in sorted(p.relative_to(before) for p in before.rglob("checkpoints/*.db")):
+        equal = _same_run(before / name, after / name)
+        print(f"{name}: {'settings and θ equal' if equal else 'DIFFERENT'}")
+        same &= equal
+        names.append(name)
     print(f"{len(names)} files compared: {'all equal' if same else 'NOT all equal'}")
     return same
+
+
+def _same_run(before: Path, after: Path) -> bool:
+    """Two stored runs with the same settings and θ_l in every record (read by this checkout)."""
+    sys.path.insert(0, str(ROOT))
+    from torch_api.runs.store import RunStore
+
+    if not after.exists():
+        return False
+    a, b = RunStore.read(before), RunStore.read(after)
+    theta = [r["theta"] for _, r in sorted(a.records.items())]
+    return a.config == b.config and theta == [r["theta"] for _, r in sorted(b.records.items())]
 
 
 def main() -> None:
