@@ -109,6 +109,34 @@ def test_resume_after_rewards_bought_but_not_fitted_buys_nothing_again(tmp_path,
     _same_run(full, resumed)
 
 
+def test_going_on_after_a_stop_at_the_selections_commit_buys_as_a_resume(tmp_path, full):
+    """A hook that raises at iteration 2's selection commit (the run's 4th): the same object
+    going on buys what a resumed run buys, the uninterrupted run's episodes."""
+
+    def stop_at_the_fourth(counter):
+        def hook(api):
+            counter.append(1)
+            if len(counter) == 4:
+                raise KeyboardInterrupt
+
+        return hook
+
+    going_on = _api(tmp_path / "a.db", on_checkpoint=stop_at_the_fourth([]))
+    with pytest.raises(KeyboardInterrupt):
+        going_on.run()
+    going_on.on_checkpoint = None
+    going_on.run()
+    stopped = _api(tmp_path / "b.db", on_checkpoint=stop_at_the_fourth([]))
+    with pytest.raises(KeyboardInterrupt):
+        stopped.run()
+    stopped.close()
+    resumed = _api(tmp_path / "b.db", resume=True)
+    assert resumed.buyer.choice is None  # (no episode of it bought: chosen again, the same)
+    resumed.run()
+    _same_run(going_on, resumed)
+    _same_run(going_on, full)
+
+
 def test_resume_after_an_iteration_reproduces_the_uninterrupted_run(tmp_path, full):
     path = tmp_path / "run.db"
     with _api(path) as first:

@@ -68,7 +68,7 @@ class RewardBuyer:
         self.keep_reward_free = durable.layout.keep_reward_free
         self.choice: Choice | None = None  # the coming iteration's, once committed
         self.bought: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
-        self._fresh = False  # the choice was made in this run (not restored): one rollout
+        self._fresh = False  # chosen here, not restored: (with "all") bought in one rollout
 
     @property
     def _trials(self) -> int:
