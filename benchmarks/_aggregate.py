@@ -1,8 +1,8 @@
 """Identical design rows merged: what ``bench_j.py`` measures J on (finite state spaces).
 
 Only the benchmarks use it: with grouped psi_hat a chain-walk data set has at most ``S × A``
-distinct design rows, and the cost of :func:`torch_api.solve.j_criterion` and
-:func:`torch_api.solve.weighted_ridge` on the aggregate stops growing with n.
+distinct design rows, and the cost of :func:`torch_api.core.solve.j_criterion` and
+:func:`torch_api.core.solve.weighted_ridge` on the aggregate stops growing with n.
 """
 
 from __future__ import annotations

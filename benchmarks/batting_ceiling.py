@@ -40,11 +40,12 @@ from batting_reference import reference_optimum  # noqa: E402
 from train_batting import make_basis, parse_widths  # noqa: E402
 
 from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
-from torch_api.data import REWARD_KEY, collect_episodes  # noqa: E402
-from torch_api.design import build_design  # noqa: E402
+from torch_api.collection import collect_episodes
+from torch_api.core.design import build_design  # noqa: E402
+from torch_api.core.psi import PsiHat  # noqa: E402
+from torch_api.core.solve import DEFAULT_LAMBDA, weighted_ridge  # noqa: E402
+from torch_api.data import REWARD_KEY  # noqa: E402
 from torch_api.policies import ActionProbsPolicy, LinearQPolicy, sample_actions  # noqa: E402
-from torch_api.psi import PsiHat  # noqa: E402
-from torch_api.solve import DEFAULT_LAMBDA, weighted_ridge  # noqa: E402
 
 TEST_EPISODES_PER_SCORE = 20  # eq. 68: a score is Σ carry over 20 test episodes
 COCKED_ELBOW = -0.7  # (rad) the rule swings once the elbow φ2 is below this (limit: -π/4)

@@ -33,12 +33,12 @@ import torch
 from _physics_floor import PhysicsAudit, replay_batch
 from profile_batting import active_run, run_arguments
 
-import torch_api.criterion
-import torch_api.fit
-import torch_api.solve
+import torch_api.core.criterion
+import torch_api.core.fit
+import torch_api.core.solve
 from envs import batting
 from envs.batting import BattingEnv
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 
 PARTS = ("physics", "kernels", "moments", "solves")
 TIMERS: dict[str, float] = defaultdict(float)
@@ -70,10 +70,10 @@ def timed(owner, attr: str, part: str, shapes=None) -> None:
 def instrument() -> None:
     timed(batting.BattingSimulator, "_run", "physics")
     timed(GaussianActionBasis, "kernels", "kernels", lambda a, k, out: out.numel())
-    for module in (torch_api.solve, torch_api.criterion):
+    for module in (torch_api.core.solve, torch_api.core.criterion):
         timed(module, "weighted_moment", "moments", lambda a, k, out: tuple(a[0].shape))
-    timed(torch_api.criterion, "j_from_moments", "solves", _j_shape)
-    timed(torch_api.fit, "weighted_ridge", "solves", _ridge_shape)
+    timed(torch_api.core.criterion, "j_from_moments", "solves", _j_shape)
+    timed(torch_api.core.fit, "weighted_ridge", "solves", _ridge_shape)
 
 
 def _j_shape(args, kwargs, out) -> tuple:

@@ -1,11 +1,13 @@
 """Collecting whole episodes: ``env.rollout`` on a batched env against TorchRL's ``Collector``.
 
 The library collects M episodes of N steps by ``env.rollout(N, policy)`` on an env whose batch
-holds the M rows (``torch_api.data.collect_episodes``). The alternative is TorchRL's collector,
+holds the M rows (``torch_api.collection.collect_episodes``). The alternative is TorchRL's
+collector,
 ``Collector(env, policy, frames_per_batch=M·N, total_frames=..., reset_at_each_iter=True)``
 over the same batched env, which yields the same ``[M, N]`` batches. A third way spreads the rows
 over 2 worker processes with TorchRL's ``MultiSyncCollector``
-(``torch_api.multiprocess.collect_episodes_in_workers``, start-up of the workers included, as it
+(``torch_api.collection.multiprocess.collect_episodes_in_workers``, start-up of the workers
+included, as it
 is paid on every call). All are timed side by side on the chain walk and the batting arm, with
 the library's ε-greedy linear-Q policy. A last row shows where the workers pay: a slow, CPU-bound
 environment (the chain walk plus ``--slow-us`` microseconds of Python work per row and step,
@@ -29,9 +31,9 @@ from torchrl.collectors import Collector
 
 from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import collect_episodes
-from torch_api.multiprocess import collect_episodes_in_workers
+from torch_api.collection import collect_episodes
+from torch_api.collection.multiprocess import collect_episodes_in_workers
+from torch_api.core.basis import GaussianActionBasis
 from torch_api.policies import LinearQPolicy
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)

@@ -36,7 +36,7 @@ import chain_walk_api  # noqa: E402
 import train_batting  # noqa: E402
 from _cli import dataclass_parser, field  # noqa: E402
 
-from torch_api.solve import j_criterion, weighted_ridge  # noqa: E402
+from torch_api.core.solve import j_criterion, weighted_ridge  # noqa: E402
 
 
 @dataclass

@@ -32,10 +32,10 @@ from tensordict import TensorDict
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv  # noqa: E402
-from torch_api.basis import GaussianActionBasis  # noqa: E402
-from torch_api.iteration import ActivePolicyIteration  # noqa: E402
-from torch_api.selector import SamplingPolicySelector  # noqa: E402
-from torch_api.store import RunStore  # noqa: E402
+from torch_api.core.basis import GaussianActionBasis  # noqa: E402
+from torch_api.loop.iteration import ActivePolicyIteration  # noqa: E402
+from torch_api.loop.selector import SamplingPolicySelector  # noqa: E402
+from torch_api.runs.store import RunStore  # noqa: E402
 
 STEPS = 10  # N
 

@@ -120,12 +120,12 @@ def algebra_floor(trials: int) -> float:
     """Seconds of the J criterion (AL) and the fits (AL and PL) of both schedules on episodes
     drawn beforehand, at the paper's sizes."""
     from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-    from torch_api.basis import GaussianActionBasis
-    from torch_api.collect import collect_episodes
-    from torch_api.criterion import j_values
-    from torch_api.fit import fit_theta
+    from torch_api.collection.collect import collect_episodes
+    from torch_api.core.basis import GaussianActionBasis
+    from torch_api.core.criterion import j_values
+    from torch_api.core.fit import fit_theta
+    from torch_api.core.psi import PsiHat
     from torch_api.policies import LinearQPolicy
-    from torch_api.psi import PsiHat
 
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS).unsqueeze(-1), tau=TAU, num_actions=2)
     psi = PsiHat(basis=basis, gamma=GAMMA, mode="grouped")

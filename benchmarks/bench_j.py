@@ -33,7 +33,7 @@ import torch
 from _aggregate import aggregate_identical_rows
 from _timing import machine_info, median_times
 
-from torch_api.solve import DEFAULT_LAMBDA, j_criterion
+from torch_api.core.solve import DEFAULT_LAMBDA, j_criterion
 
 DTYPE = torch.float64
 REL_TOL = 1e-8  # agreement required between the forms of J (relative)

@@ -28,10 +28,10 @@ import torch
 from _timing import machine_info, median_time
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
-from torch_api.solve import j_criterion, weighted_ridge
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.solve import j_criterion, weighted_ridge
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 
 DECREASING = (5, 5, 3, 3, 3, 1, 1)  # the chain walk's 'decreasing' schedule (section 4.2)
 

@@ -34,7 +34,8 @@ import torch
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv
 
 from torch_api import ActivePolicyIteration, GaussianActionBasis, SamplingPolicySelector
-from torch_api.data import REWARD_KEY, collect_episodes
+from torch_api.collection import collect_episodes
+from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
 
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale

@@ -44,7 +44,7 @@ from _durable import Interrupted, raise_on_signals  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 from torch_api import store_files  # noqa: E402
-from torch_api.store import CorruptRunError, RunStore, StoreError  # noqa: E402
+from torch_api.runs.store import CorruptRunError, RunStore, StoreError  # noqa: E402
 
 CONFIG = {"N": 1}
 
@@ -109,7 +109,7 @@ def stop_at_statement(path: Path, k: int, signum: int):
 
 def kill_at_file_step(path: Path, k: int):
     """A child's body: create a store at ``path``, SIGKILLed before the k-th call into ``os``
-    of :mod:`torch_api.store_files` (open, write, fsync, rename, ...); exits :data:`CREATED`
+    of :mod:`torch_api.runs.store_files` (open, write, fsync, rename, ...); exits :data:`CREATED`
     if the creation has fewer."""
 
     class Steps:

@@ -34,15 +34,15 @@ import torch
 from _physics_floor import PhysicsAudit, replay_batch, replay_loop
 from bench_batting_env import raw_batch_run
 
-import torch_api.design
-import torch_api.fit
-import torch_api.selector
-import torch_api.solve
+import torch_api.core.design
+import torch_api.core.fit
+import torch_api.core.solve
+import torch_api.loop.selector
 from envs import batting
 from envs.batting import BASIS_TAU, BattingEnv, basis_centers
-from torch_api.basis import GaussianActionBasis
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 
 DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
 TIMERS: dict[str, float] = defaultdict(float)
@@ -89,7 +89,7 @@ def instrument() -> None:
     time_physics()
     wrap(BattingEnv, "_step", "env")
     wrap(BattingEnv, "_reset", "env")
-    for module in (torch_api.fit, torch_api.selector):
+    for module in (torch_api.core.fit, torch_api.loop.selector):
         for attr in ("build_design", "weighted_ridge", "j_values", "j_criterion"):
             if hasattr(module, attr):
                 wrap(module, attr, "algebra", outermost=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from envs.batting import BASIS_TAU, N_ACTIONS, basis_centers
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 
 
 class ScaledGaussianBasis(GaussianActionBasis):

@@ -48,7 +48,7 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 
 BACKENDS = ("local", "processes", "ray")
-"""Where chunks of trials run (``torch_api.dispatch.BACKENDS``; a test keeps them equal)."""
+"""Where chunks of trials run (``torch_api.runs.dispatch.BACKENDS``; a test keeps them equal)."""
 
 LOGGERS = ("none", "csv", "tensorboard", "wandb")
 """``--logger`` choices: TorchRL's loggers (``torchrl.record.loggers``) for the learning curves."""
@@ -154,7 +154,7 @@ class RunOptions(ThreadOptions):
 @dataclasses.dataclass
 class ChunkOptions(RunOptions):
     """:class:`RunOptions` and where the runs go: the device, and chunks of trials on a
-    backend (``torch_api.dispatch``)."""
+    backend (``torch_api.runs.dispatch``)."""
 
     device: str = field("cpu", help="where the algebra runs (cpu, cuda or cuda:N)")
     backend: str = field(

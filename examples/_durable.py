@@ -15,8 +15,8 @@ import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from torch_api.run_guard import lock_run
-from torch_api.store import RunStore, StoreError
+from torch_api.runs.run_guard import lock_run
+from torch_api.runs.store import RunStore, StoreError
 
 MAY_CHANGE_ON_RESUME = ("resume", "overwrite", "threads", "backend", "workers", "chunks")
 MAY_CHANGE_ON_RESUME += ("ray_address", "ray_cpus", "logger", "device")

@@ -8,7 +8,7 @@ builds its run with :func:`make_iteration` and returns :func:`run_iterations` â€
 :func:`run_experiment` does the rest:
 
 1. the trials of every run split into chunks (``--chunks``), each run as one batched
-   computation where ``--backend`` says (``torch_api.dispatch.run_chunks``), every chunk stored
+   computation where ``--backend`` says (``torch_api.runs.dispatch.run_chunks``), every chunk stored
    as it goes in ``<out-dir>/checkpoints/`` (``--resume``, ``--overwrite``);
 2. SIGINT/SIGTERM: the commit in flight completes, one line, exit 130/143; a store error
    (a run in use, unwritable, corrupted, of other settings): one line, exit 1 (:mod:`_durable`);
@@ -56,9 +56,9 @@ from _results import (  # noqa: F401
 )
 from tqdm import tqdm
 
-from torch_api.dispatch import run_chunks, split_trials, trial_seeds
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.dispatch import run_chunks, split_trials, trial_seeds
 
 
 def derived_seed(*parts: int, bits: int = 31) -> int:

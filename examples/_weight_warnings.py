@@ -1,7 +1,7 @@
 """Collapsed importance weights of a run: kept with their run and iteration, summarised once.
 
 Fits on rewarded data warn when the importance weights' effective sample size falls below 1 %
-of n (:class:`~torch_api.design.CollapsedWeightsWarning`). A run of many trials and iterations
+of n (:class:`~torch_api.core.design.CollapsedWeightsWarning`). A run of many trials and iterations
 gives one such warning per fit; :func:`kept_weight_warnings` keeps them (with the run, the
 iteration and the source line) instead of printing them, and :func:`report_weight_warnings`
 prints one line and writes every warning to a log file.
@@ -13,7 +13,7 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-from torch_api.design import CollapsedWeightsWarning
+from torch_api.core.design import CollapsedWeightsWarning
 
 __all__ = ["kept_weight_warnings", "report_weight_warnings"]
 

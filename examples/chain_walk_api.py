@@ -141,7 +141,7 @@ from counter_rng import CounterStreams, derive_keys
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
 from envs.chain_walk.exact import expected_discounted_return
 from envs.chain_walk.model import GAMMA, N_ACTIONS, chain_walk_model, optimal_policy
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 from torch_api.policies import LinearQPolicy
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2

@@ -64,13 +64,13 @@ from tqdm import tqdm
 from counter_rng import CounterStreams, derive_keys
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv, deterministic_policy_probs
 from envs.chain_walk.exact import exact_psi, state_action_occupancy, true_generalisation_error
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import collect_episodes
-from torch_api.design import build_design
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
+from torch_api.core.solve import weighted_ridge
+from torch_api.loop.selector import j_values
 from torch_api.policies import TabularPolicy
-from torch_api.psi import PsiHat
-from torch_api.selector import j_values
-from torch_api.solve import weighted_ridge
 from torch_api.streams import trial_seeds_of
 
 BASE_POLICIES = ("RRRRRRRRRR", "RLLLLLRRRR", "LLLLLRRRRR")  # eq. 51-53, 10-letter readings

@@ -14,7 +14,7 @@ GymWrapper refuses.)
 Observations are normalised by a TorchRL ``ObservationNorm`` transform,
 ``s ↦ s / (2.4, 2.0, 0.21, 2.0)`` (cart position, cart velocity, pole angle, pole angular
 velocity: the position and angle limits of the task map to ±1, velocities to roughly ±1). The
-basis is :class:`~torch_api.basis.GaussianActionBasis` with centres on the grid
+basis is :class:`~torch_api.core.basis.GaussianActionBasis` with centres on the grid
 ``{-g, g}^4`` ∪ {0} in normalised units and ``psi_mode="single"`` (continuous states).
 
 CartPole pays +1 per step and terminates when the pole falls; an episode of N steps may end
@@ -42,7 +42,7 @@ row per method × iteration × trial × measure; the schedule column reads ``cus
 ``performance.png``.
 
 Durable runs: AL and PL are stored as they go in ``<out-dir>/checkpoints/{active,passive}.db``
-(``torch_api/store.py``): the rewarded episodes of an iteration are committed before the next
+(``torch_api/runs/store.py``): the rewarded episodes of an iteration are committed before the next
 are measured. A folder holding runs is refused unless ``--resume`` (continue them, buying only
 what is missing) or ``--overwrite`` (discard them) is given; SIGINT/SIGTERM finish the commit in
 flight and end with one line (exit 130/143).
@@ -137,8 +137,9 @@ from _figures import steps_balanced
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv
 
 from counter_rng import CounterStreams, derive_keys
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import REWARD_KEY, collect_episodes
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
 
 ENV_ID = "CartPole-v1"

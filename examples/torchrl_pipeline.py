@@ -7,7 +7,7 @@ episodes; two ``TensorDictReplayBuffer``s of the user's own, one for reward-free
 rewarded episodes; and the user's own candidate sampling policies, one of them a
 ``ProbabilisticActor`` (a hand-made "push the way the car moves" rule).
 
-What the library adds: :class:`~torch_api.selector.SamplingPolicySelector` chooses, every
+What the library adds: :class:`~torch_api.loop.selector.SamplingPolicySelector` chooses, every
 iteration, the candidate whose rewarded episodes should give the most accurate value function,
 from reward-free episodes alone (the paper's J criterion, Algorithm 2); the functional pieces
 (``build_design``: psi_hat and the per-decision importance weights; ``weighted_ridge``) fit θ
@@ -21,7 +21,7 @@ test episode is minus its length, -200 when the car never gets there.
     python examples/torchrl_pipeline.py
 
 Durable, like every experiment example: the user's pipeline keeps what it buys in the library's
-:class:`~torch_api.store.RunStore` at ``<out-dir>/checkpoints/torchrl_pipeline.db`` — each
+:class:`~torch_api.runs.store.RunStore` at ``<out-dir>/checkpoints/torchrl_pipeline.db`` — each
 iteration's selection (J', the reward-free episodes) before the rewarded episodes it buys, those
 episodes before θ is fitted on them, θ and the iteration's row after. A folder holding a run is
 refused unless ``--resume`` (continue it: stored rewards are reused, never bought again) or
@@ -117,10 +117,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
 from torch_api import GaussianActionBasis, LinearQPolicy, PsiHat, SamplingPolicySelector
-from torch_api.design import build_design
-from torch_api.episodes import as_episodes
-from torch_api.solve import weighted_ridge
-from torch_api.store import RunStore, StoredRun
+from torch_api.core.design import build_design
+from torch_api.core.solve import weighted_ridge
+from torch_api.data.episodes import as_episodes
+from torch_api.runs.store import RunStore, StoredRun
 from torch_api.streams import derive_seed
 
 ENV_ID = "MountainCar-v0"

@@ -1,15 +1,13 @@
 """Active vs passive policy iteration on the ball-batting robot (paper section 5, Figure 10).
 
 For each schedule of rewarded episodes (``decreasing`` = 10, 10, 7, 7, 7, 4, 4 and ``fixed`` = 7
-× 7), an AL run (a ``SamplingPolicySelector`` passed in: the sampling policy of each iteration
-is chosen by J', Algorithm 2) and a PL run (no selector: the evaluation policy samples) are made
-with the same seed (a paired design), each running all trials as one batched computation. After
-every iteration l the performance of pi_{l+1} is measured per trial (eq. 68): the sum of the
-rewards of 20 test episodes of 10 steps. The script prints mean ± standard error per iteration,
-the rewards bought, and a two-tailed paired t-test of AL vs PL at the last iteration; it writes
-``train_batting.csv`` (every number: one row per schedule × method × iteration × trial ×
-measure, ``examples/_harness.py``), ``train_batting.json`` (arguments, t-tests, physics steps,
-the runs' times) and ``fig10_performance.png``.
+× 7), an AL run (the sampling policy chosen by J', Algorithm 2) and a PL run (the evaluation
+policy samples) are made with the same seed (a paired design), all trials as one batch. After
+every iteration l, pi_{l+1} is measured per trial (eq. 68: the rewards of 20 test episodes of 10
+steps). It prints mean ± s.e. per iteration, the rewards bought and a paired t-test of AL vs PL
+at the last iteration, and writes ``train_batting.csv`` (one row per schedule × method ×
+iteration × trial × measure), ``train_batting.json`` (arguments, t-tests, physics steps, times)
+and ``fig10_performance.png``.
 
 Paper settings: 54 Gaussian centres on {0, π/4} × {-π, 0, π} × {-π/4, 0, π/4} × {-π, 0, π},
 τ = 3π/2, 2 actions (B = 110), γ = 1, psi_hat of the single transition, λ = 1e-3, Z = 5,
@@ -17,47 +15,34 @@ Paper settings: 54 Gaussian centres on {0, π/4} × {-π, 0, π} × {-π/4, 0, �
 
 Defaults (about a minute on 2 CPU cores): 32 trials, the decreasing schedule, all 7 iterations,
 AL and PL, one process (MuJoCo steps its batch on every core). Its last lines say what it found:
-AL and PL at l = 7 (mean ± standard error over the trials), their paired difference and t-test,
-and the share of trials scoring 0. The figure (``fig10_performance.png``) shows the score per
-iteration for each method (colour) and schedule (line style) with error bars of one standard
-error of the mean over the trials, the reference optimum (the best open-loop action sequence,
-examples/batting_reference.py) and the learner's ceiling with the paper's basis
-(benchmarks/batting_ceiling.py) as horizontal lines, and, beside it, the paired difference
-AL − PL per iteration.
+AL and PL at l = 7 (mean ± s.e. over trials), their paired difference, t-test and the share of
+trials scoring 0. The figure shows the score per iteration, method (colour) and schedule (line
+style) with s.e. bars, the reference optimum (examples/batting_reference.py) and the learner's
+ceiling with the paper's basis (benchmarks/batting_ceiling.py), and beside it AL − PL.
 
     python examples/train_batting.py
 
-The paper's full experiment (500 trials, both schedules): most of its time is MuJoCo rollouts
-(per trial and schedule: 980 reward-free, 49 rewarded and 140 test episodes for AL). Chunks of
-about 16 trials in one worker process per core (``--backend processes``) overlap one process's
-physics with another's algebra and keep each batch in cache; it took 1085 s (18.1 min) on 2 idle
-cores with ``--tie-break lowest`` (``benchmarks/bench_figure10.py`` measures it against its
-physics floor); with ties split evenly pi_1 hits the ball in half of its episodes, so more impacts
-are resolved finely and it takes longer (README, "The ball-batting robot"):
+The paper's full experiment (500 trials, both schedules) is mostly MuJoCo rollouts. Chunks of
+about 16 trials in one worker process per core overlap one process's physics with another's
+algebra; it took 1085 s (18.1 min) on 2 idle cores with ``--tie-break lowest``
+(``benchmarks/bench_figure10.py``; README, "The ball-batting robot"):
 
     python examples/train_batting.py --trials 500 --schedule both --backend processes --chunks 32
 
-Chunks and stored runs (``examples/_harness.py``): ``--chunks C`` splits the trials of every
-run into C batched chunks, run where ``--backend`` says (``processes``: a pool of ``--workers``
-local processes; ``ray``: Ray tasks, locally or on the cluster at ``--ray-address``) and
-concatenated along the trial axis. Trial t always has the seed ``derive_seed(seed, t,
-"trial")`` and ``BattingEnv.set_block_seeds`` gives every trial's arms noise streams of their
-own, so the chunked results equal the unchunked ones (tested). Rewarded episodes are expensive:
-every run is stored as it goes (``<out-dir>/checkpoints/<schedule>_<mode>.db``, with
-``_chunk<c>of<C>`` before ``.db`` when chunked), each batch of rewarded episodes committed
-before the next is measured; ``--resume`` continues every run from its store without buying its
-rewarded episodes again (completed runs are not recomputed), and SIGINT/SIGTERM finish the
-commit in flight and end with one line (exit 130/143). Physics is MuJoCo on the CPU;
-``--device cuda`` moves the algebra (psi_hat, J, the solves) to the GPU.
+Chunks and stored runs (``examples/_harness.py``): ``--chunks C`` splits every run's trials into
+C batched chunks, run where ``--backend`` says (``processes``: ``--workers`` local processes;
+``ray``: Ray tasks, at ``--ray-address``); trial t's seed and arm noise streams are its own, so
+the chunked results equal the unchunked ones (tested). Every run is stored as it goes
+(``<out-dir>/checkpoints/<schedule>_<mode>[_chunk<c>of<C>].db``), each batch of rewarded
+episodes committed before the next is measured; ``--resume`` continues from the stores without
+buying rewards again, and SIGINT/SIGTERM finish the commit in flight (exit 130/143). Physics is
+MuJoCo on the CPU; ``--device cuda`` moves the algebra (psi_hat, J, the solves) to the GPU.
 
     python examples/train_batting.py --trials 500 --schedule both --backend ray --chunks 16
 
-Ties: θ_0 = 1 gives both actions the same Q̂_0, and so does θ = 0 (a run that has seen no
-reward yet). By default (``--tie-break uniform``) tied actions share the greedy mass equally, so
-pi_1 is uniformly random (it hits the ball in about half of its episodes). With ``--tie-break
-lowest`` the tie goes to action 0 (cock the arm): pi_1 cocks with probability 0.925 per step and
-hits the ball in about 0.1 % of episodes, and a PL trial that sees no reward keeps θ = 0 and that
-policy for ever.
+Ties: θ_0 = 1 (and θ = 0, before any reward) gives both actions the same Q̂: by default pi_1 is
+uniform (it hits the ball in half of its episodes); with ``--tie-break lowest`` it cocks the arm
+(hits in 0.1 %), and a PL trial that sees no reward keeps θ = 0 and that policy for ever.
 """
 
 from __future__ import annotations
@@ -146,22 +131,21 @@ def parse_widths(text: str) -> list[float] | None:
 
 
 def check(args: Args) -> str | None:
+    """The arguments' error message, or None."""
     try:
         parse_widths(args.basis_widths)
     except ValueError as error:
         return str(error)
-    return None
+
+
+EPILOG = (
+    "defaults: 32 trials, decreasing schedule, 7 iterations (about a minute on 2 cores). The "
+    "paper's run: --trials 500 --schedule both --backend processes --chunks 32"
+)
 
 
 def parse_args(argv=None) -> Args:
-    return parse(
-        Args,
-        argv,
-        __doc__,
-        epilog="defaults: 32 trials, decreasing schedule, 7 iterations (about a minute on 2 "
-        "cores). The paper's run: --trials 500 --schedule both --backend processes --chunks 32",
-        check=check,
-    )
+    return parse(Args, argv, __doc__, epilog=EPILOG, check=check)
 
 
 if __name__ == "__main__":
@@ -181,19 +165,19 @@ from _weight_warnings import kept_weight_warnings, report_weight_warnings
 
 from counter_rng import derive_keys
 from envs.batting import MAX_STEPS, BattingEnv
-from torch_api.data import REWARD_KEY, collect_episodes
-from torch_api.dispatch import threads_per_worker
+from torch_api.collection import collect_episodes
+from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
+from torch_api.runs.dispatch import threads_per_worker
 from torch_api.streams import STREAMS
 
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 GAMMA = 1.0  # discount γ
 TEST_EPISODES = 20  # test episodes per trial behind one performance value (eq. 68)
-# Horizontal lines of the figure (scores of eq. 68, Σ carry over 20 episodes):
-REFERENCE_OPTIMUM = 20 * 13.74  # the best open-loop sequence without noise, 13.74 m per episode
-# (examples/batting_reference.py); the best LSPI score with the paper's basis on abundant
-# random data (benchmarks/batting_ceiling.py; README "The learner's ceiling"):
-PAPER_BASIS_CEILING = 199.9
+# Horizontal lines of the figure (scores of eq. 68, Σ carry over 20 episodes): the best
+# open-loop sequence without noise, 13.74 m per episode (examples/batting_reference.py); the
+# best LSPI score with the paper's basis on abundant random data (benchmarks/batting_ceiling.py)
+REFERENCE_OPTIMUM, PAPER_BASIS_CEILING = 20 * 13.74, 199.9
 # What the paper-size run of the default setting found (README, the Figure 10 table: 500 trials,
 # seed 0, ties split evenly, the paper's learner): AL − PL at l = 7, its s.e. and the paired
 # t-test's p, per schedule. Rerun with the README's table; a run of another setting has none.
@@ -237,10 +221,8 @@ def run_chunk(chunk: harness.Chunk) -> dict:
     """Run (or resume, with ``--resume``) one chunk, checkpointed to ``chunk.store``; plus
     ``"physics"``: the :class:`PhysicsAudit` of this invocation's physics steps.
 
-    Trial t's seed is ``derive_seed(seed, t, "trial")`` in every chunking. The run's own seed
-    (the environments' single stream where they lack ``set_block_seeds``) is ``--seed`` for the
-    chunk holding trial 0 (an unchunked run) and derived from the chunk's first trial for the
-    others, so no two chunks replay the same noise.
+    Trial t's seed is ``derive_seed(seed, t, "trial")`` in every chunking; the run's own seed is
+    ``--seed`` for the chunk of trial 0, else derived from the chunk's first trial.
     """
     args, first = chunk.args, chunk.trials[0]
     # the audit's sampling stream: its own per chunk (keyed by the store's name)

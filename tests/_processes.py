@@ -44,7 +44,7 @@ def run_example(script: str, *args: str, timeout: float = 300) -> str:
 
 def wait_for_episodes(store: Path, rows: int, proc: subprocess.Popen) -> None:
     """Until the run at ``store`` holds at least ``rows`` bought episode rows (committed)."""
-    from torch_api.store import RunStore, StoreError
+    from torch_api.runs.store import RunStore, StoreError
 
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and proc.poll() is None:

@@ -30,10 +30,10 @@ import sys
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
-from torch_api.store import RunStore
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.store import RunStore
 
 SCHEDULE = (3, 2, 2, 1)
 TRIALS = 2

@@ -5,12 +5,12 @@ import torch
 from tensordict import TensorDict
 
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
 from torch_api.data import EpisodeBuffer
-from torch_api.design import build_design
-from torch_api.iteration import ActivePolicyIteration
+from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.policies import TabularPolicy
-from torch_api.psi import PsiHat
 
 NO_SUCH_GPU = "cuda:99" if torch.cuda.is_available() else "cuda"
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 
 
 def _chain_basis():

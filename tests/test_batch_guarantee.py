@@ -16,10 +16,10 @@ import torch
 from _processes import run_example  # (tests/ is on sys.path)
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.dispatch import trial_seeds
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.dispatch import trial_seeds
 
 SEED = 3
 

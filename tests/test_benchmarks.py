@@ -67,8 +67,8 @@ def test_aggregating_identical_rows_changes_nothing():
     sys.path.insert(0, str(BENCHMARKS))
     from _aggregate import aggregate_identical_rows
 
-    from torch_api.solve import DEFAULT_LAMBDA as LAM
-    from torch_api.solve import j_criterion, weighted_ridge
+    from torch_api.core.solve import DEFAULT_LAMBDA as LAM
+    from torch_api.core.solve import j_criterion, weighted_ridge
 
     gen = torch.Generator().manual_seed(3)
     distinct = torch.randn(2, 5, 6, generator=gen, dtype=torch.float64)

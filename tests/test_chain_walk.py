@@ -512,9 +512,9 @@ def test_walk_draws_the_numbers_of_a_rollout():
     """``env.walk`` (no TorchRL machinery) gives the states and rewards of ``env.rollout``
     with the same policy and streams, bit for bit."""
     from counter_rng import CounterStreams
-    from torch_api.collect import collect_episodes
+    from torch_api.collection.collect import collect_episodes
     from torch_api.policies import TabularPolicy
-    from torch_api.policy_base import sample_actions
+    from torch_api.policies.base import sample_actions
 
     trials, m, n = 3, 4, 12
     table = torch.rand(
@@ -550,7 +550,7 @@ def test_walk_tabulated_has_the_law_of_a_rollout():
     and so do those of ``env.walk``, which draws the actions."""
     from scipy import stats
 
-    from torch_api.policy_base import sample_actions
+    from torch_api.policies.base import sample_actions
 
     tables, per_table, n = 2, 30_000, 6
     table = torch.rand(tables, 10, 2, generator=torch.Generator().manual_seed(3))

@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import torch_api.solve
+import torch_api.core.solve
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.criterion import j_eq46
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
-from torch_api.store import (
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.criterion import j_eq46
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.store import (
     CorruptRunError,
     RunExistsError,
     RunInUseError,
@@ -98,7 +98,7 @@ def test_resume_after_rewards_bought_but_not_fitted_buys_nothing_again(tmp_path,
     path = tmp_path / "run.db"
     first = _api(path, env=_CountingChain)
     first.step()
-    first._buy()  # rewards of iteration 2 bought and committed, θ_2 not yet fitted
+    first.buy()  # rewards of iteration 2 bought and committed, θ_2 not yet fitted
     first.close()
     bought = _CountingChain.measured
     assert bought == 3 * (3 + 2) * 10
@@ -107,6 +107,34 @@ def test_resume_after_rewards_bought_but_not_fitted_buys_nothing_again(tmp_path,
     resumed.run()
     assert _CountingChain.measured - bought == 3 * 2 * 10  # only iteration 3's rewards
     _same_run(full, resumed)
+
+
+def test_going_on_after_a_stop_at_the_selections_commit_buys_as_a_resume(tmp_path, full):
+    """A hook that raises at iteration 2's selection commit (the run's 4th): the same object
+    going on buys what a resumed run buys, the uninterrupted run's episodes."""
+
+    def stop_at_the_fourth(counter):
+        def hook(api):
+            counter.append(1)
+            if len(counter) == 4:
+                raise KeyboardInterrupt
+
+        return hook
+
+    going_on = _api(tmp_path / "a.db", on_checkpoint=stop_at_the_fourth([]))
+    with pytest.raises(KeyboardInterrupt):
+        going_on.run()
+    going_on.on_checkpoint = None
+    going_on.run()
+    stopped = _api(tmp_path / "b.db", on_checkpoint=stop_at_the_fourth([]))
+    with pytest.raises(KeyboardInterrupt):
+        stopped.run()
+    stopped.close()
+    resumed = _api(tmp_path / "b.db", resume=True)
+    assert resumed.buyer.choice is None  # (no episode of it bought: chosen again, the same)
+    resumed.run()
+    _same_run(going_on, resumed)
+    _same_run(going_on, full)
 
 
 def test_resume_after_an_iteration_reproduces_the_uninterrupted_run(tmp_path, full):
@@ -123,14 +151,20 @@ def test_one_episode_at_a_time_resumes_mid_iteration(tmp_path):
     reference = _api(rewarded_slice="episode")
     reference.run()
     path = tmp_path / "run.db"
-    first = _api(path, rewarded_slice="episode", env=_CountingChain)
-    first.step()
-    first._select(2, 2)
-    first._buy_slice(2, [0], reseed=True)  # episode 0 of iteration 2 bought, 1 not yet
+    commits = []
+
+    def stop_at_seventh(api):  # iteration 1's selection, 3 episodes and record; then 2's
+        commits.append(api.iteration)
+        if len(commits) == 7:
+            raise KeyboardInterrupt
+
+    first = _api(path, rewarded_slice="episode", env=_CountingChain, on_checkpoint=stop_at_seventh)
+    with pytest.raises(KeyboardInterrupt):  # episode 0 of iteration 2 bought, 1 not yet
+        first.run()
     first.close()
     before = _CountingChain.measured
     resumed = _api(path, rewarded_slice="episode", env=_CountingChain, resume=True)
-    assert sorted(resumed._partial) == [0]
+    assert sorted(resumed.buyer.bought) == [0]
     resumed.run()
     assert _CountingChain.measured - before == 3 * (1 + 2) * 10  # episode 1, then iteration 3
     _same_run(reference, resumed)
@@ -198,7 +232,7 @@ def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monke
         raise ValueError(f"A + λI is not positive definite (λ = {lam})")
 
     # (a λ small enough to fail on a few samples, below 1e-10, is refused by the constructor)
-    monkeypatch.setattr(torch_api.solve, "_cholesky", no_factor)
+    monkeypatch.setattr(torch_api.core.solve, "_cholesky", no_factor)
     with pytest.raises(ValueError, match="not positive definite"):
         api.run()  # bought, then the fit fails
     api.close()
@@ -206,7 +240,7 @@ def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monke
     assert len(RunStore.read(path).episodes[1]) == 3  # the bought rewards are stored
     before = _CountingChain.measured
     resumed = _api(path, mode="passive", resume=True, device="cpu", env=_CountingChain)
-    assert resumed._pending is not None
+    assert resumed.pending is not None
     resumed.run()
     assert _CountingChain.measured - before == 3 * (2 + 2) * 10  # iteration 1 not bought again
     reference = _api(mode="passive")
@@ -223,7 +257,7 @@ def test_a_second_process_on_the_same_run_is_refused_naming_the_holder(tmp_path)
             "-c",
             textwrap.dedent(f"""
                 import sys, time
-                from torch_api.store import RunStore
+                from torch_api.runs.store import RunStore
                 store = RunStore({str(path)!r}, config={{}})
                 print("holding", flush=True)
                 sys.stdin.readline()
@@ -281,7 +315,7 @@ _READ_ONLY_CHECK = """
 import sys
 sys.path.insert(0, {tests!r})
 from test_checkpoint import _CountingChain, _api
-from torch_api.store import StoreWriteError
+from torch_api.runs.store import StoreWriteError
 try:
     _api({path!r}, env=_CountingChain)
 except StoreWriteError as error:
@@ -367,7 +401,7 @@ def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
     path = tmp_path / "run.db"
     with _api(path) as api:
         api.step()
-        api._buy()
+        api.buy()
     good = path.read_bytes()
     reference = _api()
     reference.load(path)
@@ -390,7 +424,7 @@ def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
         ea, eb = target.rewarded.episodes(), reference.rewarded.episodes()
         for key in ea.keys(True, True):
             assert torch.equal(ea[key], eb[key])
-        assert target._pending["chosen"].tolist() == reference._pending["chosen"].tolist()
+        assert target.pending.chosen.tolist() == reference.pending.chosen.tolist()
         same += 1
     print(f"{refused} of {tries} flips refused, {same} in unused bytes changed nothing")
     assert refused + same == tries and refused > 0
@@ -478,7 +512,7 @@ def test_malformed_content_is_refused_naming_the_path(tmp_path, sql):
 
 def test_tampered_rows_with_recomputed_digests_are_still_bounded(tmp_path):
     """A blob that claims a huge tensor is refused before anything that size is built."""
-    from torch_api.store import _digest
+    from torch_api.runs.store import _digest
 
     path = tmp_path / "run.db"
     with _api(path) as api:
@@ -519,7 +553,7 @@ def test_one_bad_reward_is_named_and_the_valid_episodes_are_stored(tmp_path):
     assert sorted(stored.episodes[2]) == [0]  # episode 0 of every trial is kept
     _NanChain.broken = False
     resumed = _api(path, resume=True, env=_NanChain)  # a repaired env buys episode 1 again
-    assert sorted(resumed._partial) == [0]
+    assert sorted(resumed.buyer.bought) == [0]
     resumed.run()
     assert resumed.rewarded_transitions == (3 + 2 + 2) * 10
 
@@ -572,7 +606,8 @@ def test_a_huge_lambda_warns():
 
 
 def test_nan_sampling_probabilities_are_refused():
-    from torch_api.data import EpisodeBuffer, collect_episodes
+    from torch_api.collection import collect_episodes
+    from torch_api.data import EpisodeBuffer
     from torch_api.policies import LinearQPolicy
 
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
@@ -590,7 +625,7 @@ def test_nan_sampling_probabilities_are_refused():
 def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
     """Even with a matching checksum (anyone who can write the file can compute one), a row
     holding a pickle is refused by the decoder and its code never runs."""
-    from torch_api.store import _digest
+    from torch_api.runs.store import _digest
 
     mark = tmp_path / "mark"
     monkeypatch.setenv("PAYLOAD_MARK", str(mark))

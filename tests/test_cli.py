@@ -198,7 +198,7 @@ def test_resume_with_overwrite_is_one_line_before_any_work(script, tmp_path):
 
 
 def test_backends_match_the_library():
-    from torch_api.dispatch import BACKENDS
+    from torch_api.runs.dispatch import BACKENDS
 
     assert _cli.BACKENDS == BACKENDS
 

@@ -5,8 +5,9 @@ import torch
 from tensordict import TensorDict
 
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import EpisodeBuffer, cat_episodes, collect_episodes, validate_episodes
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.data import EpisodeBuffer, cat_episodes, validate_episodes
 from torch_api.policies import LinearQPolicy
 
 

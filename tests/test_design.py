@@ -12,12 +12,12 @@ from envs.chain_walk import (
     exact_psi,
     state_action_occupancy,
 )
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import collect_episodes
-from torch_api.design import build_design
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
+from torch_api.core.solve import weighted_ridge
 from torch_api.policies import TabularPolicy
-from torch_api.psi import PsiHat
-from torch_api.solve import weighted_ridge
 
 N_STEPS = 10
 

@@ -17,10 +17,10 @@ import torch
 
 from envs.batting import MAX_STEPS, BattingEnv
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.iteration import ActivePolicyIteration
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 from torch_api.policies import LinearQPolicy
-from torch_api.selector import SamplingPolicySelector
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import chain_walk_api  # noqa: E402

@@ -1,4 +1,4 @@
-"""torch_api/dispatch.py: trial chunks, their seeds, and running them locally or on Ray."""
+"""torch_api/runs/dispatch.py: trial chunks, their seeds, and running them locally or on Ray."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.dispatch import run_chunks, split_trials, trial_seeds
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.selector import SamplingPolicySelector
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.runs.dispatch import run_chunks, split_trials, trial_seeds
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 

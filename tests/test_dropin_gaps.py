@@ -20,7 +20,7 @@ from torch_api import (
     SamplingPolicySelector,
     collect_episodes,
 )
-from torch_api.episodes import as_episodes
+from torch_api.data.episodes import as_episodes
 
 
 def _basis() -> GaussianActionBasis:

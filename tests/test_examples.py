@@ -138,7 +138,7 @@ def test_plot_batting_episode(tmp_path):
     _check_png(out)
 
 
-# -- chunks of trials (torch_api/dispatch.py): the same numbers however the trials are split ----
+# -- chunks of trials (torch_api/runs/dispatch.py): the same numbers however trials are split ----
 
 CHUNK_RUN = ("--trials", "3", "--iterations", "2", "--schedule", "decreasing")
 CHUNK_RUN += ("--test-episodes", "3", "--test-steps", "10")
@@ -257,7 +257,7 @@ def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
     """The user's Collector and ProbabilisticActor, SIGKILLed once a bought episode is stored:
     --resume keeps every stored reward (buys only the rest) and ends with the numbers of an
     uninterrupted run; a second run into the folder without --resume/--overwrite is refused."""
-    from torch_api.store import RunStore
+    from torch_api.runs.store import RunStore
 
     _run("torchrl_pipeline.py", *PIPELINE_RUN, "--out-dir", str(tmp_path / "ref"))
     expected = _without_times(json.loads((tmp_path / "ref" / "torchrl_pipeline.json").read_text()))

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from torch_api.store import RunStore
+from torch_api.runs.store import RunStore
 
 DRIVER = Path(__file__).with_name("fault_driver.py")
 KILLED = -signal.SIGKILL

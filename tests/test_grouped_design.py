@@ -1,4 +1,4 @@
-"""torch_api/grouped_design.py: the finite-state moments from group sums equal the per-sample
+"""torch_api/core/grouped_design.py: the finite-state moments from group sums equal the per-sample
 ones (a dense reference: build_design's rows and weights summed sample by sample)."""
 
 import pytest
@@ -6,13 +6,13 @@ import torch
 
 from counter_rng import CounterStreams
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.collect import collect_episodes
-from torch_api.criterion import pooled_moments
-from torch_api.design import build_design
+from torch_api.collection.collect import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.criterion import pooled_moments
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
+from torch_api.core.solve import weighted_moment
 from torch_api.policies import LinearQPolicy
-from torch_api.psi import PsiHat
-from torch_api.solve import weighted_moment
 
 T, Z, K, M, N = 3, 2, 4, 3, 10
 

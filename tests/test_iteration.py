@@ -1,4 +1,4 @@
-"""Algorithm 1 (torch_api/iteration.py): weights, θ, seeding, passive mode, batched trials.
+"""Algorithm 1 (torch_api/loop/iteration.py): weights, θ, seeding, passive mode, batched trials.
 
 References are written out by hand (NumPy loops over episodes and steps); only psi_hat rows are
 taken from the library (they have their own tests in test_psi.py / test_design.py).
@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.design import build_design
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.psi import PsiHat
-from torch_api.selector import SamplingPolicySelector
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 
 LAM = 1e-3
 N = 10

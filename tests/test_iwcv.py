@@ -1,4 +1,4 @@
-"""Flattened weights chosen by IWCV (torch_api/iwcv.py, torch_api/fit.py) and in the loop."""
+"""Flattened weights chosen by IWCV (torch_api/core/iwcv.py, torch_api/core/fit.py), in the loop."""
 
 from __future__ import annotations
 
@@ -6,17 +6,17 @@ import pytest
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.collect import collect_episodes
-from torch_api.design import build_design
-from torch_api.fit import fit_flattened
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.iwcv import check_flattening, choose_flattening
+from torch_api.collection.collect import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.fit import fit_flattened
+from torch_api.core.iwcv import check_flattening, choose_flattening
+from torch_api.core.psi import PsiHat
+from torch_api.core.solve import weighted_ridge
+from torch_api.core.weights import effective_sample_size
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 from torch_api.policies import LinearQPolicy
-from torch_api.psi import PsiHat
-from torch_api.selector import SamplingPolicySelector
-from torch_api.solve import weighted_ridge
-from torch_api.weights import effective_sample_size
 
 LAM = 1e-3
 

@@ -1,4 +1,4 @@
-"""Worker processes die with their parent (torch_api/lifetime.py), for real processes."""
+"""Worker processes die with their parent (torch_api/runs/lifetime.py), for real processes."""
 
 import os
 import signal
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from _processes import running  # (tests/ is on sys.path)
 
-LIFETIME = Path(__file__).resolve().parents[1] / "torch_api" / "lifetime.py"
+LIFETIME = Path(__file__).resolve().parents[1] / "torch_api" / "runs" / "lifetime.py"
 # the module alone (stdlib only), without importing torch through the package
 LOAD = textwrap.dedent(f"""
     import importlib.util, sys, time

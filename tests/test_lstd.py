@@ -1,4 +1,4 @@
-"""LSTD-Q (torch_api/lstd.py): θ and J against the dense formulas written out by hand."""
+"""LSTD-Q (torch_api/core/lstd.py): θ and J against the dense formulas written out by hand."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import pytest
 import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import collect_episodes
-from torch_api.design import build_design
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.lstd import lstd_j_values, phi_rows, weighted_lstd
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.lstd import lstd_j_values, phi_rows, weighted_lstd
+from torch_api.core.psi import PsiHat
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 from torch_api.policies import LinearQPolicy
-from torch_api.psi import PsiHat
-from torch_api.selector import SamplingPolicySelector
 
 LAM = 1e-3
 

@@ -8,13 +8,13 @@ import torch
 from counter_rng import CounterStreams
 from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.collect import collect_episodes
-from torch_api.iteration import ActivePolicyIteration
-from torch_api.multiprocess import collect_episodes_in_workers
+from torch_api.collection.collect import collect_episodes
+from torch_api.collection.multiprocess import collect_episodes_in_workers
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.psi import PsiHat
+from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.selector import SamplingPolicySelector
 from torch_api.policies import LinearQPolicy
-from torch_api.psi import PsiHat
-from torch_api.selector import SamplingPolicySelector
 
 
 def batting_env(rows: int) -> BattingEnv:  # top level: the workers unpickle it by name

@@ -5,7 +5,7 @@ import torch
 from tensordict import TensorDict
 
 from counter_rng import CounterStreams
-from torch_api.basis import GaussianActionBasis
+from torch_api.core.basis import GaussianActionBasis
 from torch_api.policies import (
     LinearQPolicy,
     TabularPolicy,

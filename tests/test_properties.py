@@ -4,10 +4,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torch_api.basis import GaussianActionBasis
-from torch_api.psi import PsiHat
-from torch_api.solve import j_criterion, j_from_moments, weighted_moment, weighted_ridge
-from torch_api.weights import per_decision_weights
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.psi import PsiHat
+from torch_api.core.solve import j_criterion, j_from_moments, weighted_moment, weighted_ridge
+from torch_api.core.weights import per_decision_weights
 
 # database=None: no .hypothesis/ folder written into the checkout
 SETTINGS = settings(max_examples=40, deadline=None, database=None)

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from torch_api.basis import GaussianActionBasis
-from torch_api.psi import PsiHat, knn_mean, psi_hat, state_action_groups
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.psi import PsiHat, knn_mean, psi_hat, state_action_groups
 
 
 def _basis():

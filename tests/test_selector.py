@@ -5,12 +5,13 @@ import pytest
 import torch
 
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api.basis import GaussianActionBasis
-from torch_api.data import cat_episodes, collect_episodes
-from torch_api.design import build_design
+from torch_api.collection import collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat
+from torch_api.data import cat_episodes
+from torch_api.loop.selector import SamplingPolicySelector, candidate_epsilons, j_values
 from torch_api.policies import LinearQPolicy
-from torch_api.psi import PsiHat
-from torch_api.selector import SamplingPolicySelector, candidate_epsilons, j_values
 
 LAM = 1e-3
 

@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg
 import torch
 
-from torch_api.solve import (
+from torch_api.core.solve import (
     j_criterion,
     j_from_moments,
     weighted_moment,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from torch_api.store import CorruptRunError, RunStore
+from torch_api.runs.store import CorruptRunError, RunStore
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from durability_attacks import (  # noqa: E402  (the attacks, counted there)
@@ -150,7 +150,7 @@ def test_a_store_with_a_trigger_is_refused_before_it_eats_rows(tmp_path):
 
 
 def test_a_config_nested_deeper_than_python_recurses_is_corrupt_not_a_traceback(tmp_path):
-    from torch_api.store import _digest
+    from torch_api.runs.store import _digest
 
     path = _stored(tmp_path)
     deep = b"[" * 100_000 + b"]" * 100_000
@@ -170,7 +170,9 @@ def test_an_intact_run_in_a_read_only_folder_reads_back(tmp_path):
     was "cannot read the run ...: unable to open database file" (SQLite makes a ``-shm``)."""
     path = _stored(tmp_path / "ro")
     os.chmod(path.parent, 0o500)
-    script = f"from torch_api.store import RunStore; print(RunStore.read({str(path)!r}).records)"
+    script = (
+        f"from torch_api.runs.store import RunStore; print(RunStore.read({str(path)!r}).records)"
+    )
     command = [sys.executable, "-c", script]
     if os.access(path.parent, os.W_OK):  # root
         if shutil.which("unshare") is None:

@@ -23,7 +23,7 @@ from torch_api import (
     collect_episodes,
 )
 from torch_api.policies import greedy_actions
-from torch_api.store import RunStore
+from torch_api.runs.store import RunStore
 
 
 def cartpole():
@@ -141,7 +141,7 @@ def test_batched_env_factories(factory):
         assert applied_share(api.rewarded.episodes()) == 1.0
         assert api.rewarded_transitions > 0 and torch.isfinite(api.theta).all()
     finally:
-        built = list(api._env_for._built.values())
+        built = list(api.envs.built.values())
         api.close()
     assert built and all(env.is_closed for env in built)
 
@@ -413,7 +413,7 @@ def test_a_bad_reward_from_the_users_collector_keeps_the_valid_episodes(tmp_path
     assert sorted(RunStore.read(path).episodes[1]) == [0, 2]
     _NanInSecondEpisode.broken = False
     resumed = api(resume=True)  # a repaired env buys episode 1 again, and only it
-    assert sorted(resumed._partial) == [0, 2]
+    assert sorted(resumed.buyer.bought) == [0, 2]
     resumed.run()
     assert len(resumed.rewarded) == 3 + 2
     assert torch.isfinite(resumed.rewarded.episodes()["next", "reward"]).all()

@@ -165,7 +165,7 @@ def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_pa
     assert both.returncode == 2 and "exclude each other" in both.stderr
     fresh = run_script(tmp_path, "--overwrite", stop_after=1)  # a selection
     assert fresh.returncode == INTERRUPTED, fresh.stderr[-3000:]
-    from torch_api.store import RunStore
+    from torch_api.runs.store import RunStore
 
     assert RunStore.read(tmp_path / "checkpoints" / "decreasing_active.db").episodes == {}
 

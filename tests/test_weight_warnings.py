@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from torch_api.design import CollapsedWeightsWarning, _warn_on_collapsed_weights
+from torch_api.core.design import CollapsedWeightsWarning, _warn_on_collapsed_weights
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 from _weight_warnings import kept_weight_warnings, report_weight_warnings  # noqa: E402

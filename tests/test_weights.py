@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torch_api.weights import effective_sample_size, per_decision_weights
+from torch_api.core.weights import effective_sample_size, per_decision_weights
 
 
 def test_matches_brute_force_product():
@@ -61,7 +61,7 @@ def test_effective_sample_size():
 
 
 def test_flattened_weights_keep_zeros_and_skip_the_power_at_one():
-    from torch_api.weights import flatten_weights
+    from torch_api.core.weights import flatten_weights
 
     w = torch.tensor([[0.0, 0.25, 4.0], [1.0, 9.0, 0.0]], dtype=torch.float64)
     assert flatten_weights(w, 1.0) is w  # ν = 1: the paper's weights, no power computed

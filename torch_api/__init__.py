@@ -24,18 +24,18 @@ What a user extends, each with a runnable example in its docstring (docs/archite
 import logging
 from importlib.metadata import PackageNotFoundError, version
 
-from torch_api.actions import ActionEncoding
-from torch_api.basis import GaussianActionBasis
-from torch_api.criterion import Criterion, PooledMoments, j_eq46, pooled_moments
-from torch_api.data import (
-    EpisodeBuffer,
-    as_episodes,
-    at_most_rows,
-    collect_episodes,
-    pad_steps,
-)
-from torch_api.design import build_design
-from torch_api.iteration import ActivePolicyIteration, IterationRecord
+from torch_api import _moved
+from torch_api.collection import at_most_rows, collect_episodes
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.core.criterion import Criterion, PooledMoments, j_eq46, pooled_moments
+from torch_api.core.design import build_design
+from torch_api.core.psi import PsiHat, psi_hat, state_action_groups
+from torch_api.core.solve import j_criterion, weighted_moment, weighted_ridge
+from torch_api.core.weights import per_decision_weights
+from torch_api.data import EpisodeBuffer, as_episodes, pad_steps
+from torch_api.data.actions import ActionEncoding
+from torch_api.loop.iteration import ActivePolicyIteration, IterationRecord
+from torch_api.loop.selector import SamplingPolicySelector, j_values
 from torch_api.policies import (
     ActionProbsPolicy,
     LinearQPolicy,
@@ -45,11 +45,9 @@ from torch_api.policies import (
     sample_actions,
     softmax_probs,
 )
-from torch_api.psi import PsiHat, psi_hat, state_action_groups
-from torch_api.selector import SamplingPolicySelector, j_values
-from torch_api.solve import j_criterion, weighted_moment, weighted_ridge
 from torch_api.streams import BlockSeeded, TrialStreams, seed_env
-from torch_api.weights import per_decision_weights
+
+_moved.install()  # the flat layout's module paths, for one release (torch_api/_moved.py)
 
 try:
     __version__ = version("torch-api")

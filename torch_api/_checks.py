@@ -8,7 +8,6 @@ import warnings
 
 import torch
 
-SLICES = ("all", "episode")  # how rewarded episodes are bought (ActivePolicyIteration)
 HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warned about
 TINY_LAMBDA = 1e-10  # λ below this vanishes beside a design's entries: a singular one stays so
 
@@ -59,18 +58,6 @@ def _check_choice(name: str, value, choices: tuple) -> None:
         raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
-def _initial_theta(theta, width: int) -> torch.Tensor:
-    """θ_0 as float64 ``[B]`` (default all ones: ``Q̂_0 = Σ_b phi_b``, eq. 58, 67)."""
-    if theta is None:
-        return torch.ones(width, dtype=torch.float64)
-    theta = torch.as_tensor(theta, dtype=torch.float64)
-    if theta.shape != (width,):
-        raise ValueError(
-            f"initial_theta must have shape [{width}] (the basis width), got {tuple(theta.shape)}"
-        )
-    return theta
-
-
 def _count(name: str, value, minimum: int = 1) -> int:
     """``value`` as an int >= minimum; a non-integer (2.5, True, "3") is refused."""
     integral = isinstance(value, numbers.Integral) or (
@@ -111,63 +98,3 @@ def _check_device(device) -> torch.device:
         if count == 0 or (device.index or 0) >= count:
             raise ValueError(f"device {str(device)!r}: torch sees {count} CUDA GPUs here")
     return device
-
-
-def _check_loop_settings(
-    *,
-    tie_break,
-    schedule,
-    num_steps,
-    knn_k,
-    num_trials,
-    gamma,
-    lam,
-    rewarded_slice,
-    store,
-    psi_mode,
-    fit,
-    collector,
-    extra=(0, True),
-    env_is_factory=True,
-    seed=0,
-    device=None,
-    candidate_offsets=(),
-) -> tuple:
-    """The plain settings of :class:`~torch_api.iteration.ActivePolicyIteration`, checked.
-
-    ``store`` is ``(resume or overwrite, checkpoint_path)``; ``collector`` the loop's or the
-    selector's collector factory, if any; ``extra`` is ``(number of extra candidates, active)``.
-    Returns ``(schedule, num_steps, knn_k, num_trials, seed, device)`` normalised
-    (``candidate_offsets`` is checked finite).
-    """
-    from torch_api.fit import FITS  # (imported here: _checks is imported by light modules)
-    from torch_api.policies import TIE_BREAKS
-    from torch_api.psi import PSI_MODES
-
-    _check_choice("tie_break", tie_break, TIE_BREAKS)
-    schedule = _check_schedule(schedule)
-    num_steps = _count("num_steps", num_steps)
-    knn_k = _count("knn_k", knn_k)
-    if num_trials is not None:
-        num_trials = _count("num_trials", num_trials)
-    if not 0 < gamma <= 1:
-        raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
-    _check_lambda(lam)
-    _check_choice("rewarded_slice", rewarded_slice, SLICES)
-    if store[0] and store[1] is None:
-        raise ValueError("resume and overwrite need a checkpoint_path")
-    _check_choice("psi_mode", psi_mode, PSI_MODES)
-    _check_choice("fit", fit, FITS)
-    if fit == "lstd" and psi_mode != "single":
-        raise ValueError(f"fit='lstd' needs psi_mode='single', got {psi_mode!r}")
-    if num_trials is not None and collector:
-        raise ValueError("a collector (the loop's or the selector's) works without num_trials")
-    if num_trials is not None and not env_is_factory:
-        raise ValueError("num_trials needs env as a callable batch_size -> env (T·M_l rows)")
-    if extra[0] and (num_trials is not None or not extra[1]):
-        raise ValueError(
-            "extra_candidates are offered to the selector: they need active mode (selector=) "
-            "and work without num_trials (a TorchRL actor holds one set of parameters)"
-        )
-    _check_finite("candidate_offsets", candidate_offsets)
-    return schedule, num_steps, knn_k, num_trials, _check_seed(seed), _check_device(device)

@@ -1,7 +1,7 @@
 """The library's logging: one logger, ``torch_api``, and TorchRL's storage notices kept quiet.
 
 The library never prints; it logs through Python's :mod:`logging` on the ``torch_api`` logger
-(and its children, e.g. ``torch_api.iteration``), which has a ``NullHandler`` and no level of
+(and its children, e.g. ``torch_api.loop.iteration``), which has a ``NullHandler`` and no level of
 its own: nothing shows unless the application configures logging, e.g.
 
 >>> import logging

@@ -3,7 +3,7 @@
 The environment knows nothing of value functions; these are the Gaussian centres and the width
 the paper's experiment puts on the arm's state, kept apart from the physics so that another
 basis is another grid, not a change to the env. The experiments (``examples/train_batting.py``,
-``benchmarks/``) build their :class:`torch_api.basis.GaussianActionBasis` from them.
+``benchmarks/``) build their :class:`torch_api.core.basis.GaussianActionBasis` from them.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The paper's basis for the chain-walk experiments (eq. 50): the algorithm's side, not the env's.
 
 Gaussian centres on the state numbers and their width; the experiments build their
-:class:`torch_api.basis.GaussianActionBasis` from them. The env itself knows no basis.
+:class:`torch_api.core.basis.GaussianActionBasis` from them. The env itself knows no basis.
 """
 
 __all__ = ["CENTERS", "TAU"]

@@ -1,0 +1,272 @@
+"""The durable run: its store, the settings a resume checks, and the rebuilding of a run.
+
+:class:`~torch_api.loop.iteration.ActivePolicyIteration` commits every choice of a sampling
+policy, every slice of rewarded episodes and every iteration's record through a
+:class:`DurableRun` (a :class:`~torch_api.runs.store.RunStore`, or nothing). Here also: what
+identifies an env or a basis (:func:`fingerprint`), and the loop's state rebuilt from a
+verified store (:func:`restore`, a :class:`Restored`), checked before anything is changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from torch_api._moved import stable_name
+from torch_api.data.buffer import EpisodeBuffer, validate_episodes
+from torch_api.loop.records import Choice, IterationRecord
+from torch_api.runs.store import CorruptRunError, RunStore, StoredRun
+
+__all__ = ["DurableRun", "Restored", "RunLayout", "fingerprint", "plain", "qualified", "restore"]
+
+
+def plain(value):
+    """A JSON-able, exact description of a setting's value (tensors by digest)."""
+    if isinstance(value, torch.Tensor):
+        data = value.detach().cpu().contiguous()
+        digest = hashlib.sha256(data.view(torch.uint8).numpy().tobytes()).hexdigest()
+        return {"dtype": str(data.dtype), "shape": list(data.shape), "sha256": digest}
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    if isinstance(value, (tuple, list)) and all(
+        isinstance(v, (bool, int, float, str)) for v in value
+    ):
+        return [plain(v) for v in value]
+    return None  # not a plain setting: left out
+
+
+def qualified(function) -> str:
+    """A function's module and name (how a setting that is a function is told apart)."""
+    name = getattr(function, "__qualname__", type(function).__qualname__)
+    return f"{stable_name(getattr(function, '__module__', None))}.{name}"
+
+
+_NOT_IDENTITY = {"batch_size", "seed", "rng", "device", "training", "num_envs", "nthread"}
+
+
+def fingerprint(obj) -> dict:
+    """What identifies an environment or a basis: its class, the tensors of its state and its
+    public plain attributes (numbers, strings, tensors), batch size, seeds and device left out.
+    """
+    out = {"class": f"{stable_name(type(obj).__module__)}.{type(obj).__qualname__}"}
+    if isinstance(obj, nn.Module):
+        out |= {f"state.{k}": plain(v) for k, v in obj.state_dict().items()}
+    for name, value in sorted(vars(obj).items()):
+        if name.startswith("_") or name in _NOT_IDENTITY:
+            continue
+        described = plain(value)
+        if described is not None:
+            out[name] = described
+    return out
+
+
+class DurableRun:
+    """The run's store at ``path`` (or none), through which the loop commits what it buys.
+
+    Each commit calls ``on_commit()`` after it (the loop's ``on_checkpoint`` hook). Without a
+    path every ``put_*`` does nothing.
+
+    Args:
+        path: the store's SQLite file, or None (a run in memory only).
+        settings: what gives the stored data its meaning (a resume must agree on all of it),
+            asked for when a store is opened or read.
+        layout: what stored rows are read against (:func:`restore`).
+        resume, overwrite: as :class:`~torch_api.runs.store.RunStore`.
+        on_commit: called after every commit.
+
+    Attributes:
+        store: the :class:`~torch_api.runs.store.RunStore`, or None.
+        restored: the state of the stored run to continue (verified), or None (a fresh start).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike | None,
+        *,
+        settings: Callable[[], dict],
+        layout: RunLayout,
+        resume: bool = False,
+        overwrite: bool = False,
+        on_commit: Callable[[], None] = lambda: None,
+    ) -> None:
+        self.path = None if path is None else Path(path)
+        self.settings, self.layout, self.on_commit = settings, layout, on_commit
+        self.store: RunStore | None = None
+        self.restored: Restored | None = None
+        if self.path is None:
+            return
+        self.store = RunStore(self.path, config=settings(), resume=resume, overwrite=overwrite)
+        if not self.store.started_fresh:
+            try:
+                self.restored = restore(self.store.stored, self.path, layout)
+            except BaseException:
+                self.store.close()
+                raise
+
+    def read(self, path: str | os.PathLike) -> Restored:
+        """The state of the run stored at ``path`` (read only), made with these settings.
+
+        Raises:
+            CorruptRunError: the file fails a check, or was made with other settings.
+        """
+        stored = RunStore.read(path)
+        mine = RunStore.normalise(self.settings())
+        if stored.config != mine:
+            differ = sorted(
+                k for k in stored.config.keys() | mine.keys() if stored.config.get(k) != mine.get(k)
+            )
+            raise CorruptRunError(
+                f"the run stored in {path} was made with other settings: {differ}"
+            )
+        return restore(stored, Path(path), self.layout)
+
+    @property
+    def closed(self) -> bool:
+        """The store is closed (a run without one is never closed)."""
+        return self.store is not None and self.store.closed
+
+    def put_selection(self, iteration: int, row: dict, free: TensorDict | None) -> None:
+        """Commit iteration l's choice (and its reward-free episodes, if kept)."""
+        if self.store is not None:
+            self.store.put_selection(iteration, row, free)
+            self.on_commit()
+
+    def put_episodes(self, iteration: int, episodes: dict[int, TensorDict]) -> None:
+        """Commit rewarded episodes of iteration l, by index m."""
+        if self.store is not None:
+            self.store.put_episodes(iteration, episodes)
+            self.on_commit()
+
+    def put_record(self, iteration: int, record: dict) -> None:
+        """Commit iteration l's record (θ_l)."""
+        if self.store is not None:
+            self.store.put_record(iteration, record)
+            self.on_commit()
+
+    def close(self) -> None:
+        """Close the store (its lock is released)."""
+        if self.store is not None:
+            self.store.close()
+
+
+@dataclass
+class Restored:
+    """The loop's state rebuilt from a stored run (:func:`restore`).
+
+    Attributes:
+        rewarded, reward_free: the buffers, the warm start first.
+        reward_free_transitions: collected so far (all trials).
+        history: the records of the iterations done; theta: θ of the last (None: none done).
+        pending: the choice of the coming iteration when all its rewards are bought, else None.
+        choice, bought: the coming iteration's choice and the episodes bought of it by index,
+            when it is under way (else None and ``{}``).
+    """
+
+    rewarded: EpisodeBuffer
+    reward_free: EpisodeBuffer
+    reward_free_transitions: int
+    history: list[IterationRecord]
+    theta: torch.Tensor | None
+    pending: Choice | None
+    choice: Choice | None
+    bought: dict[int, TensorDict]
+
+
+class RunLayout(NamedTuple):
+    """What a stored run's rows are read against: the loop's schedule and shapes.
+
+    Attributes:
+        schedule: M_1 … M_L; trial_dims: ``()`` or ``(T,)``; theta_shape: θ's ``[*T, B]``.
+        rewarded_slice, keep_reward_free: as the loop's.
+        warm: the warm start's episodes ``[*T, M_0, N]`` (or None), first in the buffer.
+        capacities: those of the rewarded and the reward-free buffers.
+    """
+
+    schedule: list[int]
+    trial_dims: tuple[int, ...]
+    theta_shape: torch.Size
+    rewarded_slice: str
+    keep_reward_free: bool
+    warm: TensorDict | None
+    capacities: tuple[int, int]
+
+
+def restore(stored: StoredRun, path, layout: RunLayout) -> Restored:
+    """Rebuild the loop's state from a verified store; pure (nothing is changed if it fails).
+
+    Raises:
+        CorruptRunError: the stored rows do not form a run of this schedule.
+    """
+    schedule, trial_dims, theta_shape, rewarded_slice, keep_reward_free, warm, capacities = layout
+    done = len(stored.records)
+    if sorted(stored.records) != list(range(1, done + 1)) or done > len(schedule):
+        raise CorruptRunError(f"the run {path} holds records {sorted(stored.records)}")
+    rewarded = EpisodeBuffer(rewarded=True, capacity=capacities[0])
+    if warm is not None:  # the warm start comes first, as in a fresh run
+        rewarded.extend(warm)
+    reward_free = EpisodeBuffer(rewarded=False, capacity=capacities[1])
+    free_transitions = 0
+    choice, bought = None, {}
+    nxt = done + 1
+    if nxt <= len(schedule) and nxt in stored.selections:
+        if stored.episodes.get(nxt) or rewarded_slice == "episode":
+            choice = dict(stored.selections[nxt])
+            bought = dict(stored.episodes.get(nxt, {}))
+    try:
+        for l_now in range(1, done + 1 + (choice is not None)):
+            row = stored.selections.get(l_now)
+            if row is None:
+                raise CorruptRunError(f"the run {path} lacks the selection of iteration {l_now}")
+            free_transitions += int(row["reward_free_transitions"])
+            if keep_reward_free and l_now in stored.free:
+                reward_free.extend(stored.free[l_now])
+        for l_now in range(1, done + 1):
+            got = stored.episodes.get(l_now, {})
+            if sorted(got) != list(range(schedule[l_now - 1])):
+                raise CorruptRunError(
+                    f"the run {path} holds episodes {sorted(got)} of iteration {l_now}, "
+                    f"which bought {schedule[l_now - 1]}"
+                )
+            rewarded.extend(torch.stack([got[m] for m in sorted(got)], len(trial_dims)))
+        for m, episode in bought.items():
+            if not 0 <= m < schedule[nxt - 1]:
+                raise CorruptRunError(f"the run {path} holds episode {m} of iteration {nxt}")
+            validate_episodes(episode.unsqueeze(-2), rewarded=True)
+        history = [IterationRecord(**r) for _, r in sorted(stored.records.items())]
+        theta = None
+        if history:
+            theta = torch.tensor(history[-1].theta, dtype=torch.float64)
+            if theta.shape != theta_shape:
+                raise CorruptRunError(f"the run {path} holds θ of shape {tuple(theta.shape)}")
+    except (ValueError, TypeError, KeyError, RuntimeError) as error:
+        if isinstance(error, CorruptRunError):
+            raise
+        raise CorruptRunError(f"the run {path} cannot be restored: {error}") from None
+    if choice is not None:
+        choice = Choice.from_row(choice)
+    pending = None
+    if choice is not None and len(bought) == schedule[nxt - 1]:
+        last = [bought[m] for m in sorted(bought)]
+        rewarded.extend(torch.stack(last, len(trial_dims)))
+        pending, choice, bought = choice, None, {}
+    return Restored(
+        rewarded=rewarded,
+        reward_free=reward_free,
+        reward_free_transitions=free_transitions,
+        history=history,
+        theta=theta,
+        pending=pending,
+        choice=choice,
+        bought=bought,
+    )
