@@ -4,20 +4,22 @@ For each T it runs ``examples/chain_walk_api.py --trials T`` (both schedules, AL
 paper's sizes otherwise) in a fresh process and reports:
 
 - ``wall``: the whole command, start-up included; ``compute``: the experiment's own time (the
-  ``wall_seconds`` of its JSON); ``peak RSS`` of the process;
+  ``wall_seconds`` of its JSON); ``peak RSS`` of its largest process; for each ``--backend``
+  (``processes``, the CLI's default: a forked worker per core; ``local``: one process);
 - ``start-up``: a process that only imports what the CLI imports (measured once);
 - the floors of the same work in this process: ``rng`` — drawing the run's count of 32-bit
   words from :class:`counter_rng.CounterStreams` in calls of the run's mean draw size (the
   count comes from an instrumented in-process run of a few trials: every draw is per trial);
   ``algebra`` — the J criterion of every AL iteration and the fit of every iteration, both
   schedules, on episodes drawn beforehand (the arithmetic alone: no rollout, no Python loop
-  over steps).
+  over steps), in one process on ``--threads`` threads.
 
 Run::
 
     python benchmarks/bench_figure8.py                     # T = 100, 1000, 10000 (minutes)
     python benchmarks/bench_figure8.py --trials 20 100     # a quick look
     python benchmarks/bench_figure8.py --threads 2         # the CLI's and the floors' threads
+    python benchmarks/bench_figure8.py --backend local     # one process only
 """
 
 from __future__ import annotations
@@ -40,10 +42,12 @@ SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3,) * 7}
 Z, K, N = 5, 4, 10  # repeats, candidates, steps (section 4.2)
 
 
-def run_cli(trials: int, threads: int, out: Path) -> dict:
-    """Wall time, the experiment's own time and the peak RSS of one run of the CLI."""
+def run_cli(trials: int, threads: int, out: Path, backend: str, chunk_trials: int) -> dict:
+    """Wall time, the experiment's own time and the peak RSS (of its largest process) of one
+    run of the CLI, its trials in chunks of at most ``chunk_trials``."""
     command = [sys.executable, str(CLI), "--trials", str(trials), "--threads", str(threads)]
-    command += ["--out-dir", str(out), "--overwrite"]
+    command += ["--out-dir", str(out), "--overwrite", "--backend", backend]
+    command += ["--chunks", str(-(-trials // chunk_trials))]
     wrapper = (
         "import resource, subprocess, sys, time\n"
         "t = time.perf_counter()\n"
@@ -94,7 +98,7 @@ def count_draws(trials: int) -> tuple[int, int]:
     counter_streams.CounterStreams._words = counting
     try:
         with tempfile.TemporaryDirectory() as out:
-            chain_walk_api.main(["--trials", str(trials), "--out-dir", out])
+            chain_walk_api.main(["--trials", str(trials), "--out-dir", out, "--backend", "local"])
     finally:
         counter_streams.CounterStreams._words = original
     return words, calls
@@ -151,6 +155,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, nargs="+", default=[100, 1000, 10000])
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--backend",
+        nargs="+",
+        default=["processes", "local"],
+        help="the CLI's --backend, each measured (processes: its default, a worker per core)",
+    )
+    parser.add_argument(
+        "--chunk-trials", type=int, default=2500, help="trials per chunk (bounds the memory)"
+    )
     parser.add_argument("--startup-repeats", type=int, default=3)
     parser.add_argument(
         "--count-trials", type=int, default=10, help="trials of the run whose draws are counted"
@@ -163,30 +176,33 @@ def main() -> None:
     words, calls = count_draws(args.count_trials)
     rows = []
     print(
-        "| trials | wall s | compute s | start-up s | rng floor s | algebra floor s | peak RSS MB |"
+        "| trials | backend | wall s | compute s | start-up s | rng floor s | algebra floor s "
+        "| peak RSS MB |"
     )
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|")
     for trials in args.trials:
-        with tempfile.TemporaryDirectory() as out:
-            run = run_cli(trials, args.threads, Path(out))
-        row = {
-            "trials": trials,
-            **run,
-            "startup_s": startup,
+        floors = {
             "rng_floor_s": rng_floor(words * trials // args.count_trials, calls),
             "algebra_floor_s": algebra_floor(trials),
         }
-        rows.append(row)
-        print(
-            f"| {trials:,} | {row['wall_s']:.1f} | {row['compute_s']:.1f} | {startup:.1f} | "
-            f"{row['rng_floor_s']:.2f} | {row['algebra_floor_s']:.2f} | {row['rss_mb']:.0f} |"
-        )
-    if len(rows) > 1:
-        first, last = rows[0], rows[-1]
-        print(
-            f"wall ratio T={last['trials']} / T={first['trials']}: "
-            f"{last['wall_s'] / first['wall_s']:.2f}"
-        )
+        for backend in args.backend:
+            with tempfile.TemporaryDirectory() as out:
+                run = run_cli(trials, args.threads, Path(out), backend, args.chunk_trials)
+            row = {"trials": trials, "backend": backend, **run, "startup_s": startup, **floors}
+            rows.append(row)
+            print(
+                f"| {trials:,} | {backend} | {row['wall_s']:.1f} | {row['compute_s']:.1f} | "
+                f"{startup:.1f} | {row['rng_floor_s']:.2f} | {row['algebra_floor_s']:.2f} | "
+                f"{row['rss_mb']:.0f} |"
+            )
+    for backend in args.backend:
+        mine = [row for row in rows if row["backend"] == backend]
+        if len(mine) > 1:
+            first, last = mine[0], mine[-1]
+            print(
+                f"{backend}: wall ratio T={last['trials']} / T={first['trials']}: "
+                f"{last['wall_s'] / first['wall_s']:.2f}"
+            )
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"machine": machine_info(), "rows": rows}, indent=2))

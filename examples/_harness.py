@@ -32,6 +32,7 @@ settings and totals.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -265,11 +266,21 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
                 address=getattr(args, "ray_address", "") or None,
                 num_cpus=getattr(args, "ray_cpus", 0) or None,
                 on_result=chunk_done,
+                start_method=_start_method(),
             )
         finally:  # before a signal's or an error's last line
             bar.close()
         results = assemble(experiment, parts, chunks)
         return experiment.report(results, time.perf_counter() - started)
+
+
+def _start_method() -> str:
+    """Linux: local workers forked from this process start at once, with torch imported (no
+    thread of this process holds a lock then); elsewhere, or once CUDA is initialised here
+    (which a fork does not survive), fresh interpreters."""
+    import torch
+
+    return "fork" if sys.platform == "linux" and not torch.cuda.is_initialized() else "spawn"
 
 
 def assemble(experiment: Experiment, parts: list[dict], chunks: int) -> dict:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.stats
+import scipy.special  # Student's t law; scipy.stats costs 0.75 s more to import
 
 if TYPE_CHECKING:
     from _harness import Experiment
@@ -49,13 +49,16 @@ def paired_test(al, pl) -> dict:
     every trial, so the paired runs bought the same episodes).
     """
     a, p = np.asarray(al, dtype=np.float64), np.asarray(pl, dtype=np.float64)
-    test = None
-    if len(a) > 1 and not np.all(a - p == (a - p)[0]):
-        test = scipy.stats.ttest_rel(a, p)
+    d, n = a - p, len(a)
+    t = pvalue = None
+    if n > 1 and not np.all(d == d[0]):
+        # scipy.stats.ttest_rel's statistic and p-value (equal to ~1e-14, tested)
+        t = float(d.mean() / math.sqrt(d.var(ddof=1) / n))
+        pvalue = float(2.0 * scipy.special.stdtr(n - 1, -abs(t)))
     return {
-        "mean_difference": float((a - p).mean()),
-        "t": None if test is None else float(test.statistic),
-        "p": None if test is None else float(test.pvalue),
+        "mean_difference": float(d.mean()),
+        "t": t,
+        "p": pvalue,
         "al_better_share": float((a > p).mean()),
         "al_worse_share": float((a < p).mean()),
     }

@@ -8,8 +8,9 @@ one batched computation (``num_trials``). After every iteration the performance 
 measured twice:
 
 * ``test_return``: the paper's estimate (eq. 61), ``(1/50) Σ_m Σ_n γ^(n-1) r`` over 50 test
-  episodes of 50 steps collected with pi_{l+1} (its own ε-greedy rule) on a separately seeded
-  env, with a sampling stream of its own so that testing never perturbs learning;
+  episodes of 50 steps of pi_{l+1} (its own ε-greedy rule) on a separately seeded env, so that
+  testing never perturbs learning; the episodes are walked with the actions summed out
+  (``ChainWalkEnv.walk_tabulated``: the same law of states and rewards, one uniform a step);
 * ``exact_return``: the same quantity's exact expectation from the model
   (:func:`~envs.chain_walk.expected_discounted_return`, horizon 50), and ``percent_optimal``,
   that value in % of the optimal deterministic policy's exact value.
@@ -42,6 +43,9 @@ error over trials).
 
     python examples/chain_walk_api.py --trials 1000
 
+By default the runs go to one worker process per core (``--backend processes``): the four runs
+(two schedules, AL and PL) side by side, each one batched computation on one thread.
+
 Device: ``--device cuda`` runs the whole experiment on the GPU: the batched chain walks, the
 rollouts, psi_hat, J and the solves. The walks' random numbers are drawn on the CPU and moved,
 so a seed gives the same episodes on either device.
@@ -51,7 +55,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import ChunkOptions, SelectionOptions, field, parse
+from _cli import BACKENDS, ChunkOptions, SelectionOptions, field, parse
 from _sizes import memory_error
 
 
@@ -73,6 +77,15 @@ class Args(SelectionOptions, ChunkOptions):
         help=(
             "where the chain walks, the rollouts and the algebra run (cpu, cuda or cuda:N): all "
             "of it"
+        ),
+    )
+    backend: str = field(
+        "processes",
+        choices=BACKENDS,
+        help=(
+            "where the chunks of trials run: processes (a pool of local worker processes, one "
+            "per core: the 4 runs of a schedule pair side by side; on Linux forked from this "
+            "one, so they start at once), local (here, one after another) or ray"
         ),
     )
     tie_break: str = field(
@@ -130,7 +143,6 @@ from envs.chain_walk.exact import expected_discounted_return
 from envs.chain_walk.model import GAMMA, N_ACTIONS, chain_walk_model, optimal_policy
 from torch_api.basis import GaussianActionBasis
 from torch_api.policies import LinearQPolicy
-from torch_api.policy_base import sample_actions
 
 SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3, 3, 3, 3, 3, 3, 3)}  # section 4.2
 MEASURES = ("test_return", "exact_return", "percent_optimal")
@@ -171,24 +183,18 @@ def make_evaluator(args: Args, trials: int):
     P, R = model.transitions, model.expected_reward
     optimum = optimal_return(n)
     states = torch.arange(1, model.n_states + 1, dtype=torch.float64).unsqueeze(-1)
-    discounts = GAMMA ** torch.arange(n, dtype=torch.float64, device=env.device)
 
     def evaluate(policy: LinearQPolicy, seed: int | None = None) -> dict:
         env.set_block_seeds(derive_keys(policy.counter_streams.keys, _ROLE_TEST))
         table = policy.action_probs(states.expand(trials, *states.shape))  # [T, S, A]
-        # The same policy as a table over the 10 states, sampling from its streams, on the
-        # env's own dynamics without TorchRL's per-step machinery (env.walk: the numbers of a
-        # rollout, tested): pi(·|s) of every row is a gather, not the basis at every step.
-        rows = table.repeat_interleave(m, 0)  # [T·m, S, A]: trial t's table on its m rows
-        streams = policy.streams
-
-        def choose(state: torch.Tensor) -> torch.Tensor:
-            probs = rows.gather(1, (state - 1).reshape(-1, 1, 1).expand(-1, 1, rows.shape[-1]))
-            return sample_actions(probs.squeeze(1), streams)
-
-        _, reward = env.walk(choose, n)
-        reward = reward.to(torch.float64).reshape(trials, m, n)
-        test_return = (reward * discounts).sum(-1).mean(-1)  # eq. 61, [T]
+        # The same policy as a table over the 10 states, on the env's own dynamics without
+        # TorchRL's per-step machinery, the actions summed out (env.walk_tabulated: the law of
+        # a rollout's states and rewards, tested; one uniform a step instead of two).
+        _, reward = env.walk_tabulated(table, n)  # [n, T·m]
+        discounted = torch.zeros(trials * m, dtype=torch.float64, device=env.device)
+        for step, r in enumerate(reward):  # step by step: each row's sum in one order
+            discounted += GAMMA**step * r.to(torch.float64)
+        test_return = discounted.reshape(trials, m).mean(-1)  # eq. 61, [T]
         exact = expected_discounted_return(P, R, table, model.initial, GAMMA, n)  # [T]
         return {
             "test_return": test_return.tolist(),

@@ -173,7 +173,7 @@ from pathlib import Path
 
 import _harness as harness
 import numpy as np
-import scipy.stats
+import scipy.special
 from _batting_basis import make_basis
 from _figures import figure10
 from _physics_audit import PhysicsAudit
@@ -346,7 +346,7 @@ def print_findings(results: dict, args: Args) -> None:
         if test["p"] is None:
             tested = "the paired t-test is undefined (no spread in the differences)"
         else:
-            half = scipy.stats.t.ppf(0.975, len(al) - 1) * d_se
+            half = scipy.special.stdtrit(len(al) - 1, 0.975) * d_se  # t quantile
             tested = (
                 f"95 % CI [{d - half:+.1f}, {d + half:+.1f}] (paired t-test over {len(al)} "
                 f"trials: t = {test['t']:.2f}, p = {test['p']:.3g})"

@@ -35,8 +35,9 @@ BENCHMARKS = ROOT / "benchmarks"
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
         (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
         (
-            ["bench_figure8.py", "--trials", "2", "--startup-repeats", "1", "--count-trials", "2"],
-            "| 2 | ",
+            ["bench_figure8.py", "--trials", "2", "--startup-repeats", "1", "--count-trials", "2"]
+            + ["--backend", "processes"],
+            "| 2 | processes | ",
         ),
         (["durability_attacks.py", "--tries", "4"], "SIGTERM at statement k: resumed"),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),

@@ -541,3 +541,51 @@ def test_walk_draws_the_numbers_of_a_rollout():
     assert torch.equal(
         rewards.reshape(trials, m, n), episodes["next", "reward"].reshape(trials, m, n)
     )
+
+
+def test_walk_tabulated_has_the_law_of_a_rollout():
+    """``env.walk_tabulated`` (the actions summed out, one uniform a step) gives the states of
+    a rollout of the same policy in law: the frequency of each state at every step matches
+    the exact distribution ``d_{n+1} = d_n P_pi`` of the model (chi-square over 60,000 walks),
+    and so do those of ``env.walk``, which draws the actions."""
+    from scipy import stats
+
+    from torch_api.policy_base import sample_actions
+
+    tables, per_table, n = 2, 30_000, 6
+    table = torch.rand(tables, 10, 2, generator=torch.Generator().manual_seed(3))
+    table = table.to(torch.float64)
+    table = table / table.sum(-1, keepdim=True)
+    model = chain_walk_model()
+    env = ChainWalkEnv(batch_size=tables * per_table, seed=5)
+    states, rewards = env.walk_tabulated(table, n)  # time-major
+    assert states.shape == (n + 1, tables * per_table) and rewards.shape == (n, tables * per_table)
+    assert torch.equal(rewards, model.reward_profile.to(torch.float32)[states[1:] - 1])
+    states = states.T
+    rows = table.repeat_interleave(per_table, 0)
+    drawn, _ = ChainWalkEnv(batch_size=tables * per_table, seed=6).walk(
+        lambda s: sample_actions(rows[torch.arange(len(s)), s - 1]), n
+    )
+    for k in range(tables):
+        chain = torch.einsum("sa,sat->st", table[k], model.transitions)  # P_pi [S, S]
+        d = torch.full((10,), 0.1, dtype=torch.float64)
+        for step in range(n + 1):
+            for walks in (states, drawn):
+                block = walks[k * per_table : (k + 1) * per_table, step]
+                seen = torch.bincount(block - 1, minlength=10).numpy()
+                p = stats.chisquare(seen, (d / d.sum() * per_table).numpy()).pvalue
+                assert p > 1e-4, (k, step, p)
+            d = d @ chain
+
+
+def test_walk_tabulated_blocks_draw_alone():
+    """Rows of one table seeded as a block draw what an env of that block alone draws."""
+    table = torch.tensor([[0.3, 0.7]], dtype=torch.float64).expand(3, 10, 2)
+    env = ChainWalkEnv(batch_size=3 * 4)
+    env.set_block_seeds([7, 8, 9])
+    together = env.walk_tabulated(table, 5)
+    alone = ChainWalkEnv(batch_size=4, seed=8).walk_tabulated(table[:1], 5)
+    assert torch.equal(together[0][:, 4:8], alone[0])
+    assert torch.equal(together[1][:, 4:8], alone[1])
+    with pytest.raises(ValueError, match="K dividing"):
+        env.walk_tabulated(table[:, :, :1], 5)

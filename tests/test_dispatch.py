@@ -113,6 +113,22 @@ def test_processes_backend_keeps_chunk_order_and_gives_the_local_numbers():
     )
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="fork: the Linux start method")
+def test_forked_workers_need_nothing_picklable_and_give_the_local_numbers():
+    """With ``start_method="fork"`` the workers inherit the function and the chunks: a
+    closure runs (a script under ``python -m cProfile`` has no importable functions)."""
+    offset = 10
+    closure = lambda chunk: [x + offset for x in chunk]  # noqa: E731 (not picklable)
+    chunks = [[1, 2], [3], [4, 5, 6]]
+    out = run_chunks(closure, chunks, backend="processes", workers=2, start_method="fork")
+    assert out == [[11, 12], [13], [14, 15, 16]]
+    parts = [list(t) for t in split_trials(4, 2)]
+    forked = run_chunks(run_trials, parts, backend="processes", workers=2, start_method="fork")
+    assert forked == run_chunks(run_trials, parts)
+    with pytest.raises(Exception, match="pickle"):
+        run_chunks(closure, chunks, backend="processes", workers=2)  # spawn: must pickle
+
+
 def test_local_chunks_equal_one_batch():
     whole = run_trials([0, 1, 2, 3])
     chunked = run_chunks(run_trials, [list(t) for t in split_trials(4, 3)])

@@ -367,3 +367,20 @@ def test_the_long_layout_holds_every_number_once_and_reads_back(tmp_path):
     rows = (tmp_path / "x.csv").read_text().splitlines()
     assert rows[0] == ",".join(COLUMNS) and len(rows) == 1 + 3 * (2 + 2) + 3 * 2
     assert "seconds" not in (tmp_path / "x.csv").read_text()  # wall times: in the JSON only
+
+
+def test_the_paired_test_is_scipys_ttest_rel():
+    """``paired_test`` (Student's t from scipy.special, lighter to import than scipy.stats)
+    gives ``scipy.stats.ttest_rel``'s statistic and two-tailed p-value, to 1e-12."""
+    import numpy as np
+    import scipy.stats
+    from _results import paired_test
+
+    rng = np.random.default_rng(0)
+    for n in (2, 3, 32, 500, 1000):
+        a = rng.normal(size=n)
+        p = a + rng.normal(size=n) * 0.3 + rng.normal() * 0.1
+        ours, theirs = paired_test(a, p), scipy.stats.ttest_rel(a, p)
+        assert ours["t"] == pytest.approx(theirs.statistic, rel=1e-12)
+        assert ours["p"] == pytest.approx(theirs.pvalue, rel=1e-12, abs=1e-300)
+    assert paired_test([1.0, 2.0], [0.5, 1.5])["t"] is None  # no spread in the differences

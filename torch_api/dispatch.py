@@ -88,7 +88,20 @@ def _init_worker(threads: int, parent: int) -> None:
     # Ctrl-C reaches the whole process group: the parent alone handles it (and ends the
     # workers), so a worker does not print a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # a forked worker inherits the parent's handlers: SIGTERM ends it, as a spawned one
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     torch.set_num_threads(threads)
+
+
+_INHERITED: tuple[Callable, Sequence] | None = None
+"""``(fn, chunks)`` of the :func:`run_chunks` call whose forked workers are running: a forked
+worker finds them here, so neither needs to be picklable (e.g. a script run under ``python -m
+cProfile``, whose functions are not importable as ``__main__``'s)."""
+
+
+def _run_inherited(i: int):
+    fn, chunks = _INHERITED
+    return fn(chunks[i])
 
 
 def _guarded_call(fn, pid: int, host: str, chunk):
@@ -118,6 +131,7 @@ def run_chunks(
     num_cpus: int | None = None,
     runtime_env: dict[str, Any] | None = None,
     on_result: Callable[[int, R], None] | None = None,
+    start_method: str = "spawn",
 ) -> list[R]:
     """``[fn(chunk) for chunk in chunks]``, in-process or as Ray tasks; results in chunk order.
 
@@ -126,7 +140,7 @@ def run_chunks(
             the run's settings, returning a picklable result (plain lists and dicts, tensors).
         chunks: the chunks, each independent of the others.
         backend: ``"local"`` runs the chunks here one after another; ``"processes"`` in a pool
-            of ``workers`` local processes (started with ``spawn``; each limits torch to
+            of ``workers`` local processes (started with ``start_method``; each limits torch to
             :func:`threads_per_worker` threads), taking the chunks in the order given;
             ``"ray"`` runs each as a Ray remote task (one CPU each) and gathers the results.
         workers: processes only: the pool size (default: ``os.cpu_count()``).
@@ -138,6 +152,10 @@ def run_chunks(
         on_result: called here, in the calling process, as ``on_result(i, result)`` when
             chunk ``i``'s result arrives (in the order they finish), e.g. to move a progress
             bar over the whole experiment.
+        start_method: processes only: ``"spawn"`` (the default), ``"forkserver"`` or
+            ``"fork"`` (POSIX: the workers start at once with everything the caller has
+            imported, instead of importing torch again each; only from a caller that runs no
+            other threads holding locks, e.g. a command-line script before its work starts).
 
     Returns:
         ``[fn(c) for c in chunks]``. A Ray instance started here is shut down afterwards; one
@@ -166,12 +184,17 @@ def run_chunks(
             raise ValueError(f"workers must be >= 1, got {workers}")
         pool = ProcessPoolExecutor(
             max_workers=min(workers, len(chunks)),
-            mp_context=multiprocessing.get_context("spawn"),
+            mp_context=multiprocessing.get_context(start_method),
             initializer=_init_worker,
             initargs=(threads_per_worker(workers), os.getpid()),
         )
+        global _INHERITED
+        _INHERITED = (fn, chunks)  # before the first worker forks (they start on submit)
         try:
-            futures = {pool.submit(fn, chunk): i for i, chunk in enumerate(chunks)}
+            if start_method == "fork":  # the workers hold fn and the chunks already
+                futures = {pool.submit(_run_inherited, i): i for i in range(len(chunks))}
+            else:
+                futures = {pool.submit(fn, chunk): i for i, chunk in enumerate(chunks)}
             results = [None] * len(chunks)
             for future in as_completed(futures):
                 results[futures[future]] = future.result()
@@ -184,6 +207,8 @@ def run_chunks(
             for process in processes:
                 process.join(timeout=10)
             raise
+        finally:
+            _INHERITED = None
         pool.shutdown()
         return results
     ray = _import_ray()

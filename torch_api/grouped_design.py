@@ -23,7 +23,7 @@ from tensordict import TensorDictBase
 
 from torch_api.design import taken_probs
 from torch_api.episodes import taken_sample_probs
-from torch_api.psi import PsiHat, expected_next_features, state_action_groups
+from torch_api.psi import PsiHat, expected_next_features, state_action_groups, unique_inverse
 from torch_api.weights import per_decision_weights
 
 __all__ = ["GroupedDesign", "grouped_design", "group_sums"]
@@ -50,7 +50,7 @@ def _slots(ids: torch.Tensor, items: int, n: int) -> tuple[torch.Tensor, torch.T
     """Per-item dense slots of ids ``[items·n]`` that never repeat across items: each sample's
     slot ``[items·n]``, each (item, slot)'s first sample ``[items, S]`` (padded with the
     item's first sample) and S, the most distinct ids of any item."""
-    _, inverse = torch.unique(ids, return_inverse=True)
+    _, inverse = unique_inverse(ids)
     count = int(inverse.max()) + 1 if inverse.numel() else 0
     positions = torch.arange(ids.numel(), device=ids.device)
     first = torch.full((count,), ids.numel(), dtype=torch.long, device=ids.device)
@@ -108,7 +108,7 @@ def grouped_design(episodes: TensorDictBase, policy, psi: PsiHat) -> GroupedDesi
     item = torch.arange(items, device=mask.device).repeat_interleave(n)
     slot = item * width + group  # each sample's (item, group) row of the [L·G] tables
     pair = slot * next_width + nxt
-    pairs, pair_of = torch.unique(pair[keep.reshape(-1)], return_inverse=True)
+    pairs, pair_of = unique_inverse(pair[keep.reshape(-1)])
     pair_count = torch.bincount(pair_of, minlength=pairs.numel()).to(torch.float64)
     pair_group = pairs // next_width  # item·G + group slot
     pair_next = (pair_group // width) * next_width + pairs % next_width  # item·G' + next slot

@@ -25,6 +25,7 @@ __all__ = [
     "knn_mean",
     "psi_hat",
     "state_action_groups",
+    "unique_inverse",
 ]
 
 PSI_MODES = ("grouped", "single", "knn")
@@ -64,19 +65,59 @@ def state_action_groups(
     num_actions = int(flat_action.max()) + 1 if rows else 1
     # (batch item, action) are small integers already: combine them arithmetically.
     key = (torch.arange(rows, device=obs.device) // max(n, 1)) * num_actions + flat_action
-    # Observations compare bit for bit (as integers): one sort-based 1-D unique per column.
-    bits = flat_obs.to(torch.float64).view(torch.int64)
-    for column in bits.unbind(-1):
-        values, col_ids = torch.unique(column, return_inverse=True)
-        key = key * values.numel() + col_ids
+    # Observations compare bit for bit (as integers): one 1-D unique per column.
+    for column in flat_obs.to(torch.float64).unbind(-1):
+        count, col_ids = _value_ids(column)
+        key = key * count + col_ids
         if rows and int(key.max()) >= 4 * rows:  # keep ids small (and far from overflow)
-            _, key = torch.unique(key, return_inverse=True)
+            _, key = unique_inverse(key)
     if mask is not None:  # a masked row keys on its own position, never joining a real group
         own = (int(key.max()) + 1 if rows else 0) + torch.arange(rows, device=obs.device)
         key = torch.where(mask.reshape(-1), key, own)
         if rows and int(key.max()) >= 4 * rows:
-            _, key = torch.unique(key, return_inverse=True)
+            _, key = unique_inverse(key)
     return key.reshape(obs.shape[:-1])
+
+
+def unique_inverse(ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(ids, return_inverse=True)`` of int64 ids ``[n]``: the distinct values
+    (ascending) and each id's index among them, the same tensors to the bit.
+
+    Where the ids are non-negative and below ``4 · n`` (the group ids of this module) they are
+    ranked through a dense table of that size in linear time (no sort): a table of which
+    values occur, its running count giving each value's rank.
+
+    Example:
+        >>> ids = torch.tensor([5, 2, 5, 0])
+        >>> [t.tolist() for t in unique_inverse(ids)]
+        [[0, 2, 5], [2, 1, 2, 0]]
+    """
+    n = ids.numel()
+    if not n or int(ids.min()) < 0 or int(ids.max()) >= 4 * n:
+        return torch.unique(ids, return_inverse=True)
+    present = torch.zeros(int(ids.max()) + 1, dtype=torch.bool, device=ids.device)
+    present[ids] = True
+    rank = torch.cumsum(present, 0) - 1
+    return torch.nonzero(present).squeeze(-1), rank[ids]
+
+
+def _value_ids(column: torch.Tensor) -> tuple[int, torch.Tensor]:
+    """The number of distinct float64 values (bit for bit) of ``column [n]`` and each
+    value's rank among them (ascending bit patterns, as a unique of the bits would give).
+
+    Small non-negative whole numbers (state numbers, grid cells) are ranked densely: for
+    floats with the sign bit clear the bit patterns are in the order of the values, so the
+    ranks equal those of the bits."""
+    n = column.numel()
+    whole = n and bool(
+        (column == column.trunc()).all() & ~torch.signbit(column).any() & (column < 4 * n).all()
+    )
+    values, ids = unique_inverse(column.long()) if whole else _bits_unique(column)
+    return values.numel(), ids
+
+
+def _bits_unique(column: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.unique(column.view(torch.int64), return_inverse=True)
 
 
 def _group_mean(values: torch.Tensor, groups: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

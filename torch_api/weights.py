@@ -54,10 +54,11 @@ def per_decision_weights(
             f"mask must have shape {tuple(target_probs.shape)}, got {tuple(mask.shape)}"
         )
     for name, probs in (("target_probs", target_probs), ("sample_probs", sample_probs)):
-        valid = probs[mask]
-        if not torch.isfinite(valid).all() or (valid < 0).any() or (valid > 1 + 1e-6).any():
-            bad = valid[~torch.isfinite(valid) | (valid < 0) | (valid > 1 + 1e-6)][0].item()
-            raise ValueError(f"{name} must be finite probabilities in [0, 1], got {bad}")
+        bad = mask & ~((probs >= 0) & (probs <= 1 + 1e-6))  # NaN fails both comparisons
+        if bad.any():
+            raise ValueError(
+                f"{name} must be finite probabilities in [0, 1], got {probs[bad][0].item()}"
+            )
     zero_taken = mask & (sample_probs <= 0)
     if zero_taken.any():
         where = tuple(int(i) for i in zero_taken.nonzero()[0].tolist())

@@ -223,6 +223,56 @@ class ChainWalkEnv(EnvBase):
             rewards.append(self._f32[state - 1])
         return torch.stack(states, -1), torch.stack(rewards, -1)
 
+    def walk_tabulated(
+        self, action_probs: torch.Tensor, num_steps: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Episodes of policies given as tables, with the actions summed out: one uniform per
+        step instead of an action's and a move's.
+
+        The rewards depend on the states alone (eq. 49), and under a policy pi the states are
+        a Markov chain that moves right with probability ``q(s) = pi(R|s) p + pi(L|s)(1 − p)``
+        (p = ``success_prob``; a move off an end stays). So the walk draws one uniform u per
+        row and step and moves right iff ``u < q(s)``: the same law of the states and rewards
+        as :meth:`walk` or a rollout of the policy (tested), not the same numbers. The initial
+        states are drawn as :meth:`reset` draws them.
+
+        Args:
+            action_probs: pi(a|s) ``[K, S, A]`` for states 1 … S, one table per equal,
+                consecutive block of the env's rows (e.g. one per trial: row e follows table
+                ``e // (E / K)``).
+            num_steps: N.
+
+        Returns:
+            time-major (step first, as computed): the states ``[N + 1, *E]`` (long) and the
+            rewards ``[N, *E]`` (float32).
+
+        Example:
+            >>> env = ChainWalkEnv(batch_size=4, seed=0)
+            >>> right = torch.tensor([[0.0, 1.0]]).expand(2, 10, 2)  # 2 tables: always 'R'
+            >>> states, rewards = env.walk_tabulated(right, 3)
+            >>> states.shape, rewards.shape
+            (torch.Size([4, 4]), torch.Size([3, 4]))
+        """
+        rows, tables = self.batch_size.numel(), action_probs.shape[0]
+        if action_probs.shape[1:] != (self.n_states, N_ACTIONS) or rows % tables:
+            raise ValueError(
+                f"action_probs must be [K, {self.n_states}, {N_ACTIONS}] with K dividing the "
+                f"{rows} rows, got {tuple(action_probs.shape)}"
+            )
+        p = self.success_prob
+        right = action_probs[..., 1] * p + action_probs[..., 0] * (1.0 - p)  # q(s), [K, S]
+        right = right.to(device=self.device, dtype=torch.float64).reshape(-1)
+        first = torch.arange(tables, device=self.device).repeat_interleave(rows // tables)
+        first = first * self.n_states - 1  # row e's q(s) at first[e] + s
+        states = torch.empty(num_steps + 1, rows, dtype=torch.long, device=self.device)
+        states[0] = self._initial_states().reshape(-1)
+        for step in range(num_steps):
+            u = self.streams.uniform(torch.Size([rows])).to(self.device)
+            move = torch.where(u < right.index_select(0, first + states[step]), 1, -1)
+            torch.clamp(states[step] + move, 1, self.n_states, out=states[step + 1])
+        shape = self.batch_size
+        return states.reshape(-1, *shape), self._f32[states[1:] - 1].reshape(-1, *shape)
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = self.batch_size
         state = tensordict["observation"].reshape(shape).round().long()
