@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -38,9 +39,13 @@ from torch_api.collection import collect_episodes
 from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from _pipeline_envs import QuadraticActionBasis  # noqa: E402
+
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
 GOOD = 475  # a greedy return at least this is "balanced" (of TEST_STEPS)
 TEST_STEPS = 500  # CartPole-v1's own cap
+FIRST_80 = (80,) + (5,) * 7  # a first iteration of 80 episodes of pi_1 (uniform), then 5
 BASE = {"fit": "lstd", "schedule": (5,) * 6, "lam": 1e-3, "flattening": 1.0, "active": False}
 REMEDIES = {  # name: what differs from BASE
     "LSTD PL": {},
@@ -58,7 +63,23 @@ REMEDIES = {  # name: what differs from BASE
     "LSTD PL ν=0": {"flattening": 0.0},
     "LSTD PL iwcv, 10 episodes": {"flattening": "iwcv", "schedule": (10,) * 6},
     "LSTD PL iwcv, ε=0.15 fixed": {"flattening": "iwcv", "epsilon_schedule": "fixed"},
-}
+    # the showcase's remedies (examples/torchrl_pipeline.py; run with --iterations 8)
+    "LSTD PL ν=0 quadratic": {"flattening": 0.0, "basis": "quadratic"},
+    "LSTD PL ν=0, M_1=80": {"flattening": 0.0, "schedule": FIRST_80},
+    "LSTD PL ν=0 quadratic, M_1=80": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_80,
+    },
+    "LSTD AL ν=0 quadratic, M_1=80": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_80, "active": True,
+    },
+    "LSTD PL ν=1 quadratic, M_1=80": {"basis": "quadratic", "schedule": FIRST_80},
+    "LSTD PL iwcv quadratic, M_1=80": {
+        "flattening": "iwcv", "basis": "quadratic", "schedule": FIRST_80,
+    },
+    "BRM PL ν=0 quadratic, M_1=80": {
+        "fit": "brm", "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_80,
+    },
+}  # fmt: skip
 
 
 def fixed_epsilon(iteration: int) -> float:
@@ -78,7 +99,9 @@ def make_env(rows: int) -> TransformedEnv:
     return TransformedEnv(GymWrapper(vector), norm)
 
 
-def make_basis() -> GaussianActionBasis:
+def make_basis(kind: str = "grid") -> GaussianActionBasis:
+    if kind == "quadratic":  # [1, s, s_i s_j] per action (the showcase's)
+        return QuadraticActionBasis(obs_dim=4, num_actions=2)
     centers = torch.tensor(list(itertools.product((-1.0, 0.0, 1.0), repeat=4)))  # [81, 4]
     return GaussianActionBasis(centers=centers, tau=1.0, num_actions=2)
 
@@ -110,7 +133,7 @@ def run(name: str, args) -> dict:
     schedule = setting["schedule"][: args.iterations]
     api = ActivePolicyIteration(
         env=make_env,
-        basis=make_basis(),
+        basis=make_basis(setting.get("basis", "grid")),
         schedule=schedule,
         num_steps=args.steps,
         gamma=0.95,
@@ -138,6 +161,7 @@ def run(name: str, args) -> dict:
     return {
         "name": name,
         "mean_return": returns.mean(1).tolist(),
+        "last_return": returns[-1].tolist(),  # per trial (a paired test of two rows)
         "final_good": int((returns[-1] >= GOOD).sum()),
         "lost": int(((best >= GOOD) & (returns[-1] < GOOD)).sum()),
         "nu": float(torch.tensor(last.flattening).mean()),

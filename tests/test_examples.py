@@ -11,6 +11,7 @@ import importlib.util
 import json
 import math
 import signal
+import subprocess
 import sys
 from pathlib import Path
 
@@ -198,19 +199,63 @@ def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp
     _check_png(tmp_path / "fig8_performance.png")
 
 
-def test_torchrl_pipeline(tmp_path):
+def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(tmp_path):
     _run(
         "torchrl_pipeline.py",
-        *("--iterations", "2", "--episodes", "2", "--reward-free-episodes", "1"),
-        *("--repeats", "1", "--steps", "20", "--test-episodes", "2"),
-        *("--out-dir", str(tmp_path)),
+        *("--seeds", "2", "--iterations", "2", "--first-episodes", "3", "--episodes", "2"),
+        *("--reward-free-episodes", "1", "--repeats", "1", "--steps", "20"),
+        *("--test-episodes", "2", "--test-steps", "30", "--out-dir", str(tmp_path)),
     )
     payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
-    history = payload["history"]
-    assert [h["iteration"] for h in history] == [1, 2]
-    assert all(len(h["j_mean"]) == 3 for h in history)  # two θ policies and the actor
+    args = payload["args"]
+    assert args["env"] == "CartPole-v1" and args["basis"] == "quadratic" and args["fit"] == "lstd"
+    assert set(payload["runs"]) == {"AL", "PL"} and set(payload["runs"]["AL"]) == {"0", "1"}
+    for mode in ("AL", "PL"):
+        for run in payload["runs"][mode].values():
+            history = run["history"]
+            assert [h["iteration"] for h in history] == [1, 2]
+            assert all(h["flattening"] == 0.0 and h["ess_percent"] == 100.0 for h in history)
+            assert 5 <= history[-1]["rewarded_transitions"] <= 5 * 20  # early ends: fewer
+            assert all(1 <= h["greedy_test_return"] <= 30 for h in history)
+            assert all(len(h["j_mean"]) == (4 if mode == "AL" else 0) for h in history)
+    assert payload["summary"]["PL"]["seeds"] == [0, 1] and payload["t_test"] is not None
+    assert all(math.isfinite(x) for x in _numbers(payload["runs"]))
+    _check_png(tmp_path / "torchrl_pipeline.png")
+
+
+def test_torchrl_pipeline_mountain_car_with_the_actor_s_warm_start(tmp_path):
+    _run(
+        "torchrl_pipeline.py",
+        *("--env", "MountainCar-v0", "--modes", "AL", "--first-sampler", "actor"),
+        *("--iterations", "2", "--episodes", "2", "--first-episodes", "2"),
+        *("--reward-free-episodes", "1", "--repeats", "1", "--steps", "20"),
+        *("--test-episodes", "2", "--out-dir", str(tmp_path)),
+    )
+    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+    assert payload["args"]["fit"] == "brm" and payload["args"]["test_steps"] == 200
+    history = payload["runs"]["AL"]["0"]["history"]
+    assert history[0]["chosen"] == "the actor's warm start" and history[0]["j_mean"] == []
+    assert len(history[1]["j_mean"]) == 5  # four θ policies and the actor
     assert history[-1]["rewarded_transitions"] == 2 * 2 * 20  # MountainCar: no early end here
-    assert all(math.isfinite(x) for x in _numbers(payload["history"]))
+    assert payload["runs"]["PL"] == {} and payload["t_test"] is None
+    assert all(math.isfinite(x) for x in _numbers(payload["runs"]))
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (("--flattening", "2"), "--flattening must lie in [0, 1], got 2.0"),
+        (("--flattening", "half"), "--flattening must be a number in [0, 1], iwcv or auto"),
+        (("--env", "Pong-v5"), "--env"),
+        (("--modes", "PL,AL"), "--modes"),
+    ],
+)
+def test_torchrl_pipeline_refuses_bad_flags_in_one_line(flags, message, tmp_path):
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "torchrl_pipeline.py"), *flags],
+        capture_output=True, text=True, timeout=60, cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
 
 
 # -- durable runs: a killed or interrupted example resumes to the uninterrupted numbers ----------
@@ -249,7 +294,9 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert _outputs(tmp_path, "gym_drop_in") == expected
 
 
-PIPELINE_RUN = ("--iterations", "3", "--episodes", "2", "--reward-free-episodes", "1")
+PIPELINE_RUN = ("--env", "MountainCar-v0", "--modes", "AL", "--seeds", "1")
+PIPELINE_RUN += ("--iterations", "3", "--first-episodes", "2", "--episodes", "2")
+PIPELINE_RUN += ("--reward-free-episodes", "1")
 PIPELINE_RUN += ("--repeats", "1", "--steps", "20", "--test-episodes", "2")
 
 
@@ -262,7 +309,7 @@ def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
     _run("torchrl_pipeline.py", *PIPELINE_RUN, "--out-dir", str(tmp_path / "ref"))
     expected = _without_times(json.loads((tmp_path / "ref" / "torchrl_pipeline.json").read_text()))
     args = (*PIPELINE_RUN, "--out-dir", str(tmp_path))
-    store = tmp_path / "checkpoints" / "torchrl_pipeline.db"
+    store = tmp_path / "checkpoints" / "AL_seed0.db"
     proc = start_example("torchrl_pipeline.py", *args)
     wait_for_episodes(store, 2, proc)  # iteration 1's rewarded episodes are committed
     proc.kill()
@@ -278,8 +325,10 @@ def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
     ]
     out = _run("torchrl_pipeline.py", *args, "--resume")
     assert f"resumed {store} at iteration" in out
-    assert f"bought {3 * 2 - kept} rewarded episodes in this run" in out  # none twice
+    assert f"AL seed 0: bought {3 * 2 - kept} rewarded episodes in this run" in out  # none twice
     payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+    for run in (payload, expected):  # what this process bought differs by design
+        run["runs"]["AL"]["0"].pop("bought")
     assert _without_times(payload) == expected
 
 
