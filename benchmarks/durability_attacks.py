@@ -43,7 +43,7 @@ import torch  # noqa: E402
 from _durable import Interrupted, raise_on_signals  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
-from torch_api import store_files  # noqa: E402
+from torch_api.runs import store_files  # noqa: E402
 from torch_api.runs.store import CorruptRunError, RunStore, StoreError  # noqa: E402
 
 CONFIG = {"N": 1}

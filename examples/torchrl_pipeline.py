@@ -189,9 +189,9 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType
 
 from torch_api import LinearQPolicy, PsiHat, SamplingPolicySelector
-from torch_api.collection.candidates import PAPER_EPSILON_OFFSETS
 from torch_api.core.fit import fit_flattened
 from torch_api.data.episodes import as_episodes
+from torch_api.policies.families import PAPER_EPSILON_OFFSETS
 from torch_api.runs.store import RunStore, StoredRun
 from torch_api.streams import derive_seed
 
