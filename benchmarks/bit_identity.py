@@ -12,7 +12,9 @@ the same θ_l of every iteration.
     python benchmarks/bit_identity.py run --out /tmp/bit_after
     python benchmarks/bit_identity.py compare /tmp/bit_before /tmp/bit_after
 
-(The "before" of the layout's refactoring, issue #23, is commit 16990bf.)
+(The "before" of the layout's refactoring, issue #23, is commit 16990bf. Figure 8's
+``test_return`` rows changed on purpose after it, in 888ef35, the test episodes walked with the
+actions summed out; Figure 8 is compared against 9d5c80f, main just before the layout landed.)
 """
 
 from __future__ import annotations
