@@ -36,8 +36,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from _batting_basis import make_basis  # noqa: E402
+from _batting_options import parse_widths  # noqa: E402
 from batting_reference import reference_optimum  # noqa: E402
-from train_batting import make_basis, parse_widths  # noqa: E402
 
 from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
 from torch_api.collection import collect_episodes

@@ -49,11 +49,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from _batting_options import (
+    BeyondPaperOptions,
+    check,
+    paper_learner,
+    parse_flattening,
+    parse_widths,
+)
 from _cli import ChunkOptions, SelectionOptions, field, parse
 
 
 @dataclass
-class Args(SelectionOptions, ChunkOptions):
+class Args(BeyondPaperOptions, SelectionOptions, ChunkOptions):
     """Command-line arguments of the batting experiment."""
 
     trials: int = field(
@@ -93,49 +100,6 @@ class Args(SelectionOptions, ChunkOptions):
             "the physics steps are counted either way"
         ),
     )
-    basis_widths: str = field(
-        "",
-        help=(
-            "beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (rad, rad/s, rad, "
-            "rad/s) of the paper's 54 centres instead of τ = 3π/2 for all, e.g. "
-            "0.785,3.14,0.785,3.14"
-        ),
-    )
-    end_at_hit: bool = field(
-        False,
-        help=(
-            "beyond the paper: episodes terminate at the first bat-ball contact (the ball is gone)"
-        ),
-    )
-    fit: str = field(
-        "brm",
-        choices=("brm", "lstd"),
-        help=(
-            "how θ is fitted: brm (the paper: least squares of r on psi_hat) or lstd (beyond the "
-            "paper: LSTD-Q, with AL's J of the same learner)"
-        ),
-    )
-
-
-def parse_widths(text: str) -> list[float] | None:
-    """``"w1,w2,w3,w4"`` -> four floats (None for ""); ValueError if not four positive numbers."""
-    if not text:
-        return None
-    try:
-        widths = [float(w) for w in text.split(",")]
-    except ValueError:
-        widths = []
-    if len(widths) != 4 or not all(w > 0 for w in widths):
-        raise ValueError(f"--basis-widths must be four positive numbers w1,w2,w3,w4, got {text!r}")
-    return widths
-
-
-def check(args: Args) -> str | None:
-    """The arguments' error message, or None."""
-    try:
-        parse_widths(args.basis_widths)
-    except ValueError as error:
-        return str(error)
 
 
 EPILOG = (
@@ -257,6 +221,7 @@ def run_chunk(chunk: harness.Chunk) -> dict:
         lam=args.lam,
         psi_mode="single",
         fit=args.fit,
+        flattening=parse_flattening(args.flattening),
         tie_break=args.tie_break,
         evaluate=make_evaluator(len(chunk.trials), env),
         seed=args.seed if first == 0 else harness.derived_seed(args.seed, first, bits=63),
@@ -294,8 +259,7 @@ def print_table(name: str, entry: dict, trials: int) -> None:
 
 def learner_ceiling(args: Args) -> float | None:
     """The measured ceiling of this run's learner: the paper's basis and fit only (None else)."""
-    paper_learner = not args.basis_widths and args.fit == "brm" and not args.end_at_hit
-    return PAPER_BASIS_CEILING if paper_learner else None
+    return PAPER_BASIS_CEILING if paper_learner(args) else None
 
 
 def default_setting(args: Args) -> bool:

@@ -66,6 +66,7 @@ def test_outputs_exist_and_rewards_match_schedule(uninterrupted):
         for i in (1, 2):
             assert len(run[i, "performance"]) == 2
             assert all(math.isfinite(x) and x >= 0 for x in run[i, "performance"])
+            assert run[i, "flattening"] == [1.0, 1.0]  # the paper's weights by default
         j = [run.get((i, f"j_mean_k{k}")) for i in (1, 2) for k in range(1, 5)]
         if method == "AL":
             assert all(len(v) == 2 and all(math.isfinite(x) and x >= 0 for x in v) for v in j)
@@ -248,9 +249,10 @@ def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
 
 
 def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
-    """Scaled basis, episodes that end at the hit (fewer transitions bought) and LSTD-Q."""
+    """Scaled basis, episodes that end at the hit (fewer transitions bought), LSTD-Q and ν
+    chosen by IWCV (recorded per trial and iteration in the CSV)."""
     widths = ("--basis-widths", "0.785,3.14,0.785,3.14")
-    proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd")
+    proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd", "--flattening", "iwcv")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
     assert "no measured ceiling for this basis and learner" in proc.stdout
@@ -258,5 +260,9 @@ def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
     bought = read_results(tmp_path / "train_batting.csv")
     for method in ("AL", "PL"):
         assert max(bought["decreasing", method, 2, "rewarded_transitions"]) <= 4 * STEPS
+        for it in (1, 2):
+            assert set(bought["decreasing", method, it, "flattening"]) <= {0, 0.25, 0.5, 0.75, 1}
     bad = run_script(tmp_path / "bad", "--basis-widths", "1,2,3")
     assert bad.returncode == 2 and "--basis-widths must be four positive numbers" in bad.stderr
+    bad = run_script(tmp_path / "bad", "--flattening", "1.5")
+    assert bad.returncode == 2 and "--flattening must lie in [0, 1], got 1.5" in bad.stderr
