@@ -156,7 +156,8 @@ def run(name: str, args) -> dict:
     returns = torch.tensor([r.performance["greedy_return"] for r in history])  # [L, T]
     best = returns.max(0).values
     last = history[-1]
-    ess = torch.tensor(last.effective_sample_size) / last.rewarded_transitions
+    bought = torch.tensor(last.rewarded_transitions, dtype=torch.float64)  # each trial's own
+    ess = torch.tensor(last.effective_sample_size) / bought
     chosen = torch.tensor([r.chosen for r in history])  # [L, T]: 0 is pi_l itself
     return {
         "name": name,
@@ -167,7 +168,7 @@ def run(name: str, args) -> dict:
         "nu": float(torch.tensor(last.flattening).mean()),
         "ess_percent": float(100 * ess.mean()),
         "other_than_pi_l": float((chosen != 0).double().mean()) if setting["active"] else None,
-        "rewarded_transitions": last.rewarded_transitions,
+        "rewarded_transitions": round(float(bought.mean())),  # mean over trials
         "seconds": time.perf_counter() - started,
     }
 

@@ -244,11 +244,12 @@ def print_table(name: str, entry: dict, trials: int) -> None:
     for i, m in enumerate(schedule):
         a, pa = harness.mean_se(al[i]["performance"])
         p, pp = harness.mean_se(pl[i]["performance"])
-        per_trial = al[i]["rewarded_transitions"]
+        bought = np.asarray(al[i]["rewarded_transitions"])  # each trial's own (early ends)
+        per_trial, total = round(float(bought.mean())), int(bought.sum())
         choices = np.bincount(np.asarray(al[i]["chosen"]), minlength=4)
         print(
             f"{i + 1:>2} {m:>4} {a:8.2f} ± {pa:6.2f} {p:8.2f} ± {pp:6.2f} {per_trial:>13} "
-            f"{per_trial * trials:>13} {' '.join(str(c) for c in choices):>20}"
+            f"{total:>13} {' '.join(str(c) for c in choices):>20}"
         )
     last = f"paired t-test AL vs PL at iteration {len(schedule)}:"
     if test["t"] is None:

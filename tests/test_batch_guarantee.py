@@ -122,3 +122,54 @@ def test_one_step_trials_0_to_3_of_4_and_of_8_agree(tmp_path):
     for base in four:
         for measure in ("j_prime", "g_true"):
             assert four[base][measure] == eight[base][measure][:4], (base, measure)
+
+
+# -- episodes that end early: each trial's own transition counts ------------------------------
+
+
+def batting_counts(seeds: list[int]) -> list[dict]:
+    """An active batting run whose episodes end at the hit (so trials buy different numbers of
+    transitions): per iteration, the per-trial counts its records report and the per-trial
+    counts of the rewarded episodes it holds."""
+    from envs.batting import BASIS_TAU, N_ACTIONS, BattingEnv, basis_centers
+
+    basis = GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
+    api = ActivePolicyIteration(
+        env=lambda rows: BattingEnv(batch_size=rows, end_at_hit=True),
+        basis=basis,
+        schedule=(3, 2),
+        num_steps=10,
+        gamma=1.0,
+        psi_mode="single",
+        selector=SamplingPolicySelector(num_repeats=1),
+        num_trials=len(seeds),
+        seed=SEED,
+        trial_seeds=seeds,
+    )
+    rows = []
+    for _ in range(2):
+        record = api.step()
+        mask = api.rewarded.episodes()["mask"]  # [T, M, N]
+        rows.append(
+            {
+                "rewarded": record.rewarded_transitions,
+                "reward_free": record.reward_free_transitions,
+                "held": mask.sum((-2, -1)).tolist(),
+            }
+        )
+    api.close()
+    return rows
+
+
+def test_early_ends_each_trial_reports_its_own_transitions_in_any_batch():
+    """With episodes that end at the hit, trial t's counts are its own (not the batch's mean):
+    the same alone as in a batch, and equal to what its episodes hold."""
+    seeds = trial_seeds(SEED, range(3))
+    batch = batting_counts(seeds)
+    alone = [batting_counts([s]) for s in seeds]
+    for l, row in enumerate(batch):
+        assert row["rewarded"] == row["held"]
+        assert len(set(row["held"])) > 1 or l == 0  # the trials do differ (early ends)
+        for t in range(3):
+            assert alone[t][l]["rewarded"] == [row["rewarded"][t]]
+            assert alone[t][l]["reward_free"] == [row["reward_free"][t]]

@@ -67,8 +67,9 @@ def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, repeats=2, criter
 def _same_run(a, b):
     """Same θ, choices, J' and the very same bought episodes, tensor by tensor."""
     assert torch.equal(a.theta, b.theta)
-    assert [(r.chosen, r.j_mean, r.rewarded_transitions) for r in a.history] == [
-        (r.chosen, r.j_mean, r.rewarded_transitions) for r in b.history
+    counts = ("chosen", "j_mean", "rewarded_transitions", "reward_free_transitions")
+    assert [[getattr(r, c) for c in counts] for r in a.history] == [
+        [getattr(r, c) for c in counts] for r in b.history
     ]
     ea, eb = a.rewarded.episodes(), b.rewarded.episodes()
     assert set(ea.keys(True, True)) == set(eb.keys(True, True))
@@ -673,3 +674,13 @@ def test_a_signal_whose_handler_runs_right_after_a_commit_is_no_write_error(tmp_
     store._db = connection
     store.close()
     assert RunStore.read(path).records == {1: {"iteration": 1}}
+
+
+def test_a_stored_count_of_all_trials_reads_back_as_each_trials_share():
+    """Runs stored before the counts were per trial hold one total of all trials: read back as
+    its even share per trial (what those runs reported); a per-trial list reads back as is."""
+    from torch_api.loop.records import per_trial_count
+
+    assert per_trial_count(120, (3,)).tolist() == [40, 40, 40]
+    assert per_trial_count([30, 50, 40], (3,)).tolist() == [30, 50, 40]
+    assert per_trial_count(7, ()).tolist() == 7

@@ -143,7 +143,7 @@ def test_passive_mode_never_calls_the_selector(monkeypatch):
     history = api.run()
     assert len(api.reward_free) == 0
     for record in history:
-        assert record.reward_free_transitions == 0
+        assert record.reward_free_transitions == [0, 0]
         assert record.j_mean is None and record.j_all is None
         assert record.chosen == [0, 0]
     assert api.rewarded_transitions == 5 * N
@@ -184,7 +184,7 @@ def test_batched_trials_shapes_and_counts():
     bought = 0
     for record, m in zip(history, schedule, strict=True):
         bought += m * N
-        assert record.rewarded_transitions == bought
+        assert record.rewarded_transitions == [bought] * trials  # each trial's own count
         assert record.episodes_bought == m
         assert len(record.chosen) == trials
         assert all(0 <= c < k for c in record.chosen)
@@ -192,7 +192,8 @@ def test_batched_trials_shapes_and_counts():
         assert np.asarray(record.j_mean).shape == (trials, k)
         assert np.asarray(record.j_all).shape == (trials, 2, k)
         assert record.chosen == np.asarray(record.j_mean).argmin(-1).tolist()
-        assert record.reward_free_transitions == 2 * k * N * sum(schedule[: record.iteration])
+        free = 2 * k * N * sum(schedule[: record.iteration])
+        assert record.reward_free_transitions == [free] * trials
     assert api.rewarded_transitions == sum(schedule) * N
     # the bought episodes of trial t were sampled with its own chosen candidate
     ids = api.rewarded.episodes()["policy_id"][:, :, 0]  # [T, ΣM]
@@ -291,7 +292,7 @@ def test_rewarded_draws_do_not_depend_on_reward_free_collection(num_trials):
     for api in runs.values():
         api.run()
     active, passive = runs["active"], runs["passive"]
-    assert active.history[-1].reward_free_transitions > 0
+    assert np.all(np.asarray(active.history[-1].reward_free_transitions) > 0)
     bought = {mode: api.rewarded.episodes() for mode, api in runs.items()}
     assert torch.equal(bought["active"]["action"], bought["passive"]["action"])
     assert torch.equal(bought["active"]["observation"], bought["passive"]["observation"])

@@ -120,6 +120,7 @@ def test_iwcv_loop_records_nu_and_ess_per_trial_and_stores_the_setting(tmp_path)
         assert len(record.effective_sample_size) == 2
         row = record.row()
         assert row["flattening"] == record.flattening
-        assert all(0 < e <= record.rewarded_transitions for e in record.effective_sample_size)
+        pairs = zip(record.effective_sample_size, record.rewarded_transitions, strict=True)
+        assert all(0 < e <= n for e, n in pairs)
     with pytest.raises(Exception, match="flattening"):
         _api(0.5, num_trials=2, checkpoint_path=tmp_path / "run.db", resume=True)

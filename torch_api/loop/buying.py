@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from torch_api.collection.collect import EnvPerBatch
-from torch_api.data.buffer import validate_episodes
+from torch_api.data.buffer import EpisodeBuffer, validate_episodes
 from torch_api.data.episodes import to_log_prob_form
 from torch_api.loop.durable import DurableRun
 from torch_api.loop.policies import LoopPolicies
@@ -45,7 +45,13 @@ class RewardBuyer:
             ``(T,)``, the slices bought (``rewarded_slice``: ``"all"`` M_l rows in one rollout,
             or ``"episode"`` one at a time) and whether reward-free episodes are kept.
         num_steps: N.
+        reward_free: the loop's buffer of reward-free episodes (extended when they are kept).
         extra_candidates: the user's own candidates, K, K+1, … after the family's.
+
+    Attributes:
+        reward_free_transitions: reward-free transitions collected so far, per trial ``[*T]``,
+            counted with each choice before its commit (a hook that raises after the commit
+            leaves them counted, as a resumed run counts them).
     """
 
     def __init__(
@@ -58,6 +64,7 @@ class RewardBuyer:
         selector: SamplingPolicySelector | None,
         durable: DurableRun,
         num_steps: int,
+        reward_free: EpisodeBuffer,
         extra_candidates: Sequence[nn.Module] = (),
     ) -> None:
         self.envs, self.collect, self.streams = envs, collect, streams
@@ -66,6 +73,8 @@ class RewardBuyer:
         self.trial_dims = durable.layout.trial_dims
         self.rewarded_slice = durable.layout.rewarded_slice
         self.keep_reward_free = durable.layout.keep_reward_free
+        self.reward_free = reward_free
+        self.reward_free_transitions = torch.zeros(self.trial_dims, dtype=torch.long)
         self.choice: Choice | None = None  # the coming iteration's, once committed
         self.bought: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
         self._fresh = False  # chosen here, not restored: (with "all") bought in one rollout
@@ -96,7 +105,7 @@ class RewardBuyer:
         self._seed_iteration(l_now, num_episodes, len(rules))
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
         j_mean = j_all = free = None
-        reward_free_transitions = 0
+        reward_free_transitions = torch.zeros(self.trial_dims, dtype=torch.long)
         if self.selector is not None:
             selection = self.selector.select(
                 policy,
@@ -108,7 +117,9 @@ class RewardBuyer:
             )
             chosen = selection.index
             j_mean, j_all = selection.j_mean.tolist(), selection.j_all.tolist()
-            reward_free_transitions = selection.reward_free_transitions
+            # each trial's own count (episodes may end early): [*T, Z·K·M·N] summed
+            mask = selection.episodes["mask"].reshape(*self.trial_dims, -1)
+            reward_free_transitions = mask.sum(-1)
             if self.keep_reward_free:
                 free = selection.episodes.reshape(*self.trial_dims, -1, self.num_steps)
         extra = self.trial_dims == () and int(chosen) >= len(rules)  # the user's own candidate
@@ -117,10 +128,13 @@ class RewardBuyer:
             sampling_rule=None if extra else rules[chosen],
             j_mean=j_mean,
             j_all=j_all,
-            reward_free_transitions=reward_free_transitions,
+            reward_free_transitions=reward_free_transitions.tolist(),
             seconds=time.perf_counter() - started,
         )
         self.choice, self.bought, self._fresh = choice, {}, True
+        self.reward_free_transitions += reward_free_transitions
+        if free is not None:
+            self.reward_free.extend(free)
         self.durable.put_selection(l_now, choice.row(), free)
         return free
 

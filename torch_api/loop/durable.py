@@ -23,7 +23,7 @@ from torch import nn
 
 from torch_api._moved import stable_name
 from torch_api.data.buffer import EpisodeBuffer, validate_episodes
-from torch_api.loop.records import Choice, IterationRecord
+from torch_api.loop.records import Choice, IterationRecord, per_trial_count
 from torch_api.runs.store import CorruptRunError, RunStore, StoredRun
 
 __all__ = ["DurableRun", "Restored", "RunLayout", "fingerprint", "plain", "qualified", "restore"]
@@ -166,7 +166,7 @@ class Restored:
 
     Attributes:
         rewarded, reward_free: the buffers, the warm start first.
-        reward_free_transitions: collected so far (all trials).
+        reward_free_transitions: collected so far, per trial ``[*T]`` (long).
         history: the records of the iterations done; theta: θ of the last (None: none done).
         pending: the choice of the coming iteration when all its rewards are bought, else None.
         choice, bought: the coming iteration's choice and the episodes bought of it by index,
@@ -175,7 +175,7 @@ class Restored:
 
     rewarded: EpisodeBuffer
     reward_free: EpisodeBuffer
-    reward_free_transitions: int
+    reward_free_transitions: torch.Tensor
     history: list[IterationRecord]
     theta: torch.Tensor | None
     pending: Choice | None
@@ -216,7 +216,7 @@ def restore(stored: StoredRun, path, layout: RunLayout) -> Restored:
     if warm is not None:  # the warm start comes first, as in a fresh run
         rewarded.extend(warm)
     reward_free = EpisodeBuffer(rewarded=False, capacity=capacities[1])
-    free_transitions = 0
+    free_transitions = torch.zeros(trial_dims, dtype=torch.long)
     choice, bought = None, {}
     nxt = done + 1
     if nxt <= len(schedule) and nxt in stored.selections:
@@ -228,7 +228,9 @@ def restore(stored: StoredRun, path, layout: RunLayout) -> Restored:
             row = stored.selections.get(l_now)
             if row is None:
                 raise CorruptRunError(f"the run {path} lacks the selection of iteration {l_now}")
-            free_transitions += int(row["reward_free_transitions"])
+            free_transitions = free_transitions + per_trial_count(
+                row["reward_free_transitions"], trial_dims
+            )
             if keep_reward_free and l_now in stored.free:
                 reward_free.extend(stored.free[l_now])
         for l_now in range(1, done + 1):

@@ -233,7 +233,6 @@ class ActivePolicyIteration:
         z = 0 if selector is None else selector.num_repeats
         self.reward_free = EpisodeBuffer(rewarded=False, capacity=max(1, z * k * sum(schedule)))
         self.history: list[IterationRecord] = []
-        self._reward_free_transitions = 0  # (all trials)
         self.pending: Choice | None = None  # the coming iteration's, its rewards all bought
         self.policy = self.policies.evaluation(self.theta, 1)
         self.durable = DurableRun(
@@ -260,6 +259,7 @@ class ActivePolicyIteration:
             selector=self.selector,
             durable=self.durable,
             num_steps=self.num_steps,
+            reward_free=self.reward_free,
             extra_candidates=self.extra_candidates,
         )
         self.store = self.durable.store  # (a RunStore, or None)
@@ -269,7 +269,7 @@ class ActivePolicyIteration:
 
     @property
     def rewarded_transitions(self) -> int:
-        """Rewarded transitions bought so far (per trial)."""
+        """Rewarded transitions bought so far per trial (the mean; records hold each trial's)."""
         trials = math.prod(self.trial_dims)
         return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
 
@@ -297,8 +297,8 @@ class ActivePolicyIteration:
             choice,
             fitted,
             episodes_bought=self.schedule[l_now - 1],
-            rewarded_transitions=self.rewarded_transitions,
-            reward_free_transitions=self._reward_free_transitions // math.prod(self.trial_dims),
+            rewarded_transitions=episodes["mask"].sum((-2, -1)).tolist(),  # each trial's own
+            reward_free_transitions=self.buyer.reward_free_transitions.tolist(),
             performance=performance,
             seconds=choice.seconds + time.perf_counter() - started,
         )
@@ -325,16 +325,13 @@ class ActivePolicyIteration:
                 self.policy = self.policy.with_action_spec(self.policies.action_encoding)
                 if self.selector is not None:
                     self.selector.action_encoding = self.policies.action_encoding
-            free = self.buyer.select(
+            self.buyer.select(  # (counts and keeps its reward-free episodes)
                 l_now,
                 num_episodes,
                 self.policy,
                 self.rewarded.episodes() if len(self.rewarded) else None,
                 self.evaluation.flattening_for_j(self.history),
             )
-            self._reward_free_transitions += self.buyer.choice.reward_free_transitions
-            if free is not None:
-                self.reward_free.extend(free)
         choice = self.buyer.choice
         self.rewarded.extend(
             self.buyer.buy(l_now, num_episodes, self.policy, kept=len(self.rewarded))
@@ -356,7 +353,8 @@ class ActivePolicyIteration:
     def _take(self, restored: Restored) -> None:
         """Take over the state of a stored run (checked before anything changes)."""
         self.rewarded, self.reward_free = restored.rewarded, restored.reward_free
-        self._reward_free_transitions = restored.reward_free_transitions
+        self.buyer.reward_free = self.reward_free
+        self.buyer.reward_free_transitions = restored.reward_free_transitions
         self.history, self.iteration = restored.history, len(restored.history)
         if restored.theta is not None:
             self.theta = restored.theta

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 
 import torch
 
-__all__ = ["Choice", "IterationRecord"]
+__all__ = ["Choice", "IterationRecord", "per_trial_count"]
 
 
 @dataclass
@@ -17,7 +18,9 @@ class Choice:
         chosen: the candidate's index, long ``[*T]`` (0: pi_l itself; always 0 when passive).
         sampling_rule: its ε (or β) ``[*T]``, or None for one of the user's own candidates.
         j_mean: J' ``[*T][K]`` (active), else None; j_all: J ``[*T][Z][K]``, else None.
-        reward_free_transitions: reward-free transitions collected for it (all trials).
+        reward_free_transitions: reward-free transitions collected for it, per trial ``[*T]``
+            (an int without trial dims; runs stored before it was per trial hold the total of
+            all trials, :func:`per_trial_count`).
         seconds: wall time of the choice.
     """
 
@@ -25,7 +28,7 @@ class Choice:
     sampling_rule: torch.Tensor | None
     j_mean: list | None
     j_all: list | None
-    reward_free_transitions: int
+    reward_free_transitions: int | list
     seconds: float
 
     def row(self) -> dict:
@@ -60,9 +63,10 @@ class IterationRecord:
         j_mean: J' of every candidate ``[*T][K]`` (active mode), else None.
         j_all: J of every repeat and candidate ``[*T][Z][K]`` (active mode), else None.
         episodes_bought: rewarded episodes collected in this iteration (per trial).
-        rewarded_transitions: rewarded transitions bought so far (cumulative, per trial).
-        reward_free_transitions: reward-free transitions collected so far (cumulative, per
-            trial).
+        rewarded_transitions: rewarded transitions bought so far (cumulative), each trial's
+            own ``[*T]`` (episodes may end early; an int without trial dims).
+        reward_free_transitions: reward-free transitions collected so far (cumulative), each
+            trial's own, as ``rewarded_transitions``.
         performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
         seconds: wall time of the iteration (evaluation callback excluded).
         theta: θ_l ``[*T][B]``.
@@ -78,8 +82,8 @@ class IterationRecord:
     j_mean: list | None
     j_all: list | None
     episodes_bought: int
-    rewarded_transitions: int
-    reward_free_transitions: int
+    rewarded_transitions: int | list
+    reward_free_transitions: int | list
     performance: dict | None
     seconds: float
     theta: list = field(repr=False)
@@ -109,9 +113,10 @@ class IterationRecord:
             "-" if v is None else _brief(torch.tensor(v))
             for v in (self.flattening, self.effective_sample_size)
         )
+        bought = _brief(torch.tensor(self.rewarded_transitions))
         return (
             f"iteration {self.iteration}/{iterations} done in {self.seconds:.2f} s: "
-            f"{self.rewarded_transitions} rewarded transitions per trial bought so far, "
+            f"{bought} rewarded transitions per trial bought so far, "
             f"flattening ν {nu}, effective sample size {ess}"
         )
 
@@ -138,3 +143,12 @@ def _brief(values: torch.Tensor) -> str:
     if flat.numel() == 1:
         return f"{flat.item():.3g}"
     return f"mean {flat.mean().item():.3g} [{flat.min().item():.3g}, {flat.max().item():.3g}]"
+
+
+def per_trial_count(count: int | list, trial_dims: tuple[int, ...]) -> torch.Tensor:
+    """A stored transition count as one count per trial, long ``[*T]``: a list is each trial's
+    own; an int with trial dims is the total of all trials that runs stored before the counts
+    were per trial hold (read back as its even share, what those runs reported)."""
+    if isinstance(count, list) or not trial_dims:
+        return torch.tensor(count, dtype=torch.long)
+    return torch.full(trial_dims, int(count) // math.prod(trial_dims), dtype=torch.long)
