@@ -300,8 +300,9 @@ def run(args: Args, mode: str, seed_of_run: int, store: RunStore) -> dict:
         else:
             if it not in stored.selections:
                 torch.manual_seed(seed(it, "reward_free_policy"))  # the candidates' draws
-                selector.seed_env(
-                    args.repeats * args.reward_free_episodes, seed(it, "reward_free_env")
+                selector.seed_env(  # the env of the batch the candidates are collected on
+                    selector.collection_rows(list(candidates.values())),
+                    seed(it, "reward_free_env"),
                 )
                 earlier = rewarded.storage[: len(rewarded)] if len(rewarded) else None
                 choice = selector.select(

@@ -159,3 +159,33 @@ def test_a_factory_capped_by_at_most_rows_never_builds_more_rows():
     assert asked and max(asked) <= 2
     assert api.rewarded.episodes().shape == (4, 5)
     assert api.reward_free.episodes().shape == (2 * 4 * 2 * 2, 5)  # Z·K·M_l per iteration
+
+
+def _actor_candidate_run(seed: int) -> list:
+    """A loop on a batched env factory (a SerialEnv of the rows asked for) with the user's
+    actor as an extra candidate: its J values, every repeat and candidate."""
+    env = GymEnv("CartPole-v1")
+    actor = _actor(env)
+    env.close()
+    api = ActivePolicyIteration(
+        env=lambda rows: SerialEnv(rows, lambda: GymEnv("CartPole-v1")),
+        basis=_basis(),
+        schedule=(2, 1),
+        num_steps=6,
+        gamma=0.95,
+        selector=SamplingPolicySelector(num_repeats=2),
+        candidate_offsets=(0.0, 0.5),
+        extra_candidates=[actor],
+        seed=seed,
+    )
+    try:
+        return [r.j_all for r in api.run()]
+    finally:
+        api.close()
+
+
+def test_a_run_with_the_users_actor_as_a_candidate_is_reproducible():
+    """The reward-free env the candidates are collected on (Z·M rows each, candidate by
+    candidate) is the one seeded: before, the loop seeded an env of T·Z·K·M rows, which
+    nobody used, and the collecting env kept whatever seed it was made with."""
+    assert _actor_candidate_run(5) == _actor_candidate_run(5)

@@ -223,6 +223,21 @@ def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(tmp_path):
     _check_png(tmp_path / "torchrl_pipeline.png")
 
 
+def test_torchrl_pipeline_active_runs_are_reproducible(tmp_path):
+    """The same seed twice: AL's reward-free episodes (so J' and the choice) are the same.
+    Before, the selector's env of Z·K·M rows was never seeded (the example seeded Z·M)."""
+    flags = ("--modes", "AL", "--seeds", "1", "--iterations", "2", "--first-episodes", "3")
+    flags += ("--episodes", "2", "--reward-free-episodes", "2", "--repeats", "2")
+    flags += ("--steps", "40", "--test-episodes", "1", "--test-steps", "20")
+    runs = []
+    for name in ("first", "second"):
+        _run("torchrl_pipeline.py", *flags, "--out-dir", str(tmp_path / name))
+        payload = json.loads((tmp_path / name / "torchrl_pipeline.json").read_text())
+        history = payload["runs"]["AL"]["0"]["history"]
+        runs.append([(h["j_mean"], h["reward_free_transitions"], h["chosen"]) for h in history])
+    assert runs[0] == runs[1]
+
+
 def test_torchrl_pipeline_mountain_car_with_the_actor_s_warm_start(tmp_path):
     _run(
         "torchrl_pipeline.py",

@@ -36,6 +36,7 @@ __all__ = [
     "RolloutCollection",
     "WorkerCollection",
     "choose_collection",
+    "rollout_rows",
 ]
 
 
@@ -125,6 +126,16 @@ def _library_policies(candidates: Sequence) -> bool:
     return all(isinstance(c, ActionProbsPolicy) for c in candidates)
 
 
+def rollout_rows(candidates: Sequence, shape: tuple) -> int:
+    """The batch of the env that :class:`RolloutCollection` collects these candidates with,
+    for ``shape = (Z, M, N)``: ``T·Z·K·M`` (one stacked rollout of the library's policies) or
+    ``Z·M`` (candidate by candidate). Seed that batch's env before collecting."""
+    z, m, _ = shape
+    if not _library_policies(candidates):
+        return z * m
+    return math.prod(param_dims_of(candidates[0])) * z * len(candidates) * m
+
+
 class RolloutCollection:
     """Reward-free episodes from ``env.rollout`` (the default; fast on batched envs).
 
@@ -154,7 +165,7 @@ class RolloutCollection:
         z, m, n = shape
         k = len(candidates)
         trial_dims = param_dims_of(candidates[0])
-        rows = math.prod(trial_dims) * z * k * m
+        rows = rollout_rows(candidates, shape)
         env = self.envs(rows)
         if len(env.batch_size) == 1 and env.batch_size[0] == rows:
             episodes = collect_episodes(

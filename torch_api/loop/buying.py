@@ -102,14 +102,18 @@ class RewardBuyer:
         """
         started = time.perf_counter()
         rules = self.policies.candidate_rules(l_now)
-        self._seed_iteration(l_now, num_episodes, len(rules))
+        candidates = None
+        if self.selector is not None:
+            candidates = self.policies.reward_free_candidates(policy, l_now)
+            candidates += list(self.extra_candidates)
+        self._seed_iteration(l_now, num_episodes, candidates)
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
         j_mean = j_all = free = None
         reward_free_transitions = torch.zeros(self.trial_dims, dtype=torch.long)
         if self.selector is not None:
             selection = self.selector.select(
                 policy,
-                self.policies.reward_free_candidates(policy, l_now) + list(self.extra_candidates),
+                candidates,
                 earlier,
                 iteration=l_now,
                 num_episodes=num_episodes,
@@ -138,13 +142,14 @@ class RewardBuyer:
         self.durable.put_selection(l_now, choice.row(), free)
         return free
 
-    def _seed_iteration(self, iteration: int, num_episodes: int, num_candidates: int) -> None:
-        """Re-seed the environments of iteration l (the policies' streams are derived per use);
-        the reward-free env's batch is ``T·Z·K·M_l``, K the family's candidates."""
+    def _seed_iteration(self, iteration: int, num_episodes: int, candidates) -> None:
+        """Re-seed the environments of iteration l (the policies' streams are derived per use):
+        the reward-free env is the one the candidates are collected on (``T·Z·K·M_l`` rows for
+        the library's policies, ``Z·M_l`` candidate by candidate with the user's own)."""
         rows = self._trials * num_episodes
         seed_env(self.envs(rows), *self.streams.env_seeds(iteration, "rewarded_env"))
         if self.selector is not None:
-            batch = rows * self.selector.num_repeats * num_candidates
+            batch = self.selector.collection_rows(candidates, num_episodes)
             self.selector.seed_env(batch, *self.streams.env_seeds(iteration, "reward_free_env"))
 
     def buy(self, l_now: int, num_episodes: int, policy, *, kept: int = 0) -> TensorDict:

@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torch_api.collection.candidates import PolicyStack, choose_collection
+from torch_api.collection.candidates import PolicyStack, choose_collection, rollout_rows
 from torch_api.collection.collect import EnvPerBatch
 from torch_api.core.criterion import Criterion, j_eq46, j_values
 from torch_api.core.fit import FITS
@@ -253,8 +253,16 @@ class SamplingPolicySelector:
     def seed_env(self, batch: int, seed: int, block_seeds: Sequence[int] | None = None) -> None:
         """Seed the reward-free environment of ``batch`` rows (with ``num_workers``: the
         workers' environments of the next :meth:`collect`), as
-        :func:`torch_api.streams.seed_env`."""
+        :func:`torch_api.streams.seed_env`. ``batch``: :meth:`collection_rows` of the
+        candidates the next :meth:`collect` gets (another batch is another env, unseeded)."""
         self._chosen_collection().seed(batch, seed, block_seeds)
+
+    def collection_rows(self, candidates: Sequence, num_episodes: int | None = None) -> int:
+        """The batch of the reward-free env that :meth:`collect` runs these candidates on:
+        ``T·Z·K·M`` for the library's policies (one stacked rollout), ``Z·M`` for any other
+        (candidate by candidate); the batch to :meth:`seed_env` before collecting."""
+        m = self.num_episodes if num_episodes is None else int(num_episodes)
+        return rollout_rows(candidates, (self.num_repeats, m, self.num_steps or 0))
 
     def collect(
         self, candidates: Sequence, iteration: int = 0, num_episodes: int | None = None
