@@ -6,6 +6,7 @@ import math
 import os
 import pickle
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -684,3 +685,34 @@ def test_a_stored_count_of_all_trials_reads_back_as_each_trials_share():
     assert per_trial_count(120, (3,)).tolist() == [40, 40, 40]
     assert per_trial_count([30, 50, 40], (3,)).tolist() == [30, 50, 40]
     assert per_trial_count(7, ()).tolist() == 7
+
+
+def test_an_interrupt_while_the_handlers_are_restored_leaves_no_signal_blocked(monkeypatch):
+    """A signal pending at the end of a held block can run its handler while ``signals_held``
+    puts the handlers back (``signal.signal`` runs pending handlers first): SIGINT's own handler
+    raises KeyboardInterrupt there. The main thread's signal mask must be restored anyway; it
+    was left blocking SIGINT and SIGTERM for the rest of the process, so a later interrupt was
+    never delivered (seen as a flaky failure of the test above in a full suite run)."""
+    from torch_api.runs import run_guard
+
+    real, calls = signal.signal, []
+
+    def restoring(sig, handler):
+        calls.append(sig)
+        if len(calls) == 4:  # putting SIGTERM's back, SIGINT's (restored) pending handler runs
+            raise KeyboardInterrupt  # before the change, as CPython's signal.signal does
+        return real(sig, handler)
+
+    monkeypatch.setattr(run_guard.signal, "signal", restoring)
+    try:
+        with pytest.raises(KeyboardInterrupt), run_guard.signals_held():
+            pass
+    finally:
+        monkeypatch.undo()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+        handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT, signal.SIGTERM])
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    assert signal.SIGINT not in blocked and signal.SIGTERM not in blocked
+    assert handlers == (signal.default_int_handler, signal.SIG_DFL)  # both put back

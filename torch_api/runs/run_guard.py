@@ -46,11 +46,27 @@ def signals_held() -> Iterator[None]:
     try:
         yield
     finally:
-        for sig, handler in before.items():
-            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        raised = _restore_handlers(before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # whatever a handler raised
+        if raised is not None:
+            raise raised
         for signum in dict.fromkeys(noted):
             signal.raise_signal(signum)
+
+
+def _restore_handlers(before: dict) -> BaseException | None:
+    """Put every handler back; what a pending handler raised meanwhile is returned, not
+    raised. (``signal.signal`` runs pending handlers before it changes one: SIGINT's own raises
+    KeyboardInterrupt there, and the change is then not made, so it is made again.)"""
+    raised = None
+    for sig, handler in before.items():
+        while True:
+            try:
+                signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+                break
+            except BaseException as error:  # noqa: BLE001 (re-raised by the caller)
+                raised = raised or error
+    return raised
 
 
 def refuse_symlinks(path: Path) -> None:
