@@ -647,6 +647,17 @@ def test_a_pickle_inside_a_row_is_refused_and_never_run(tmp_path, monkeypatch):
     assert not mark.exists()
 
 
+@pytest.fixture
+def python_sigint():
+    """SIGINT handled by Python (KeyboardInterrupt) during the test, whatever the process was
+    started with: a background job of a non-interactive shell (``pytest &``, ``nohup``) starts
+    with SIGINT ignored, and an ignored signal is never delivered."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+@pytest.mark.usefixtures("python_sigint")
 def test_a_signal_whose_handler_runs_right_after_a_commit_is_no_write_error(tmp_path):
     """A SIGINT that reached Python just before a transaction began (the OS-level mask of
     ``signals_held`` only holds later ones) runs its handler at the first bytecode after COMMIT.
@@ -687,15 +698,17 @@ def test_a_stored_count_of_all_trials_reads_back_as_each_trials_share():
     assert per_trial_count(7, ()).tolist() == 7
 
 
+@pytest.mark.usefixtures("python_sigint")
 def test_an_interrupt_while_the_handlers_are_restored_leaves_no_signal_blocked(monkeypatch):
     """A signal pending at the end of a held block can run its handler while ``signals_held``
     puts the handlers back (``signal.signal`` runs pending handlers first): SIGINT's own handler
     raises KeyboardInterrupt there. The main thread's signal mask must be restored anyway; it
     was left blocking SIGINT and SIGTERM for the rest of the process, so a later interrupt was
-    never delivered (seen as a flaky failure of the test above in a full suite run)."""
+    never delivered."""
     from torch_api.runs import run_guard
 
     real, calls = signal.signal, []
+    expected = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
 
     def restoring(sig, handler):
         calls.append(sig)
@@ -712,7 +725,7 @@ def test_an_interrupt_while_the_handlers_are_restored_leaves_no_signal_blocked(m
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
         handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT, signal.SIGTERM])
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, expected[0])
+        signal.signal(signal.SIGTERM, expected[1])
     assert signal.SIGINT not in blocked and signal.SIGTERM not in blocked
-    assert handlers == (signal.default_int_handler, signal.SIG_DFL)  # both put back
+    assert handlers == expected  # both put back
