@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from _cli import field
+from _flattening import parse_flattening
 
 
 @dataclass
@@ -57,19 +58,6 @@ def parse_widths(text: str) -> list[float] | None:
     if len(widths) != 4 or not all(w > 0 for w in widths):
         raise ValueError(f"--basis-widths must be four positive numbers w1,w2,w3,w4, got {text!r}")
     return widths
-
-
-def parse_flattening(text: str) -> float | str:
-    """``--flattening``: ``"iwcv"`` or a ν in [0, 1] (a float); ValueError otherwise."""
-    if text == "iwcv":
-        return text
-    try:
-        nu = float(text)
-    except ValueError:
-        raise ValueError(f"--flattening must be a number in [0, 1] or iwcv, got {text!r}") from None
-    if not 0.0 <= nu <= 1.0:
-        raise ValueError(f"--flattening must lie in [0, 1], got {nu}")
-    return nu
 
 
 def paper_learner(args: BeyondPaperOptions) -> bool:

@@ -45,6 +45,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from _cli import SelectionOptions, ThreadOptions, field, not_here, parse, use_threads
+from _flattening import parse_flattening
 
 ENVS = ("CartPole-v1", "MountainCar-v0")  # (_pipeline_envs.ENVS; light here for --help)
 
@@ -148,13 +149,10 @@ UNAVAILABLE = not_here("backend") | {
 
 
 def check(args: Args) -> str | None:
-    if args.flattening not in ("auto", "iwcv"):
-        try:
-            nu = float(args.flattening)
-        except ValueError:
-            return f"--flattening must be a number in [0, 1], iwcv or auto, got {args.flattening!r}"
-        if not 0.0 <= nu <= 1.0:
-            return f"--flattening must lie in [0, 1], got {nu}"
+    try:
+        parse_flattening(args.flattening, ("iwcv", "auto"))
+    except ValueError as error:
+        return str(error)
     return None
 
 
@@ -259,7 +257,7 @@ def run(args: Args, mode: str, seed_of_run: int, store: RunStore) -> dict:
     env = envs.make_env(args.env, n)
     basis = envs.make_basis(args.env, args.basis, args.grid, args.tau)
     psi = PsiHat(basis=basis, gamma=args.gamma, mode="single")  # continuous states
-    nu = args.flattening if args.flattening == "iwcv" else float(args.flattening)
+    nu = parse_flattening(args.flattening)  # (resolved: never auto here)
     selector = None
     if mode == "AL":
         selector = SamplingPolicySelector(

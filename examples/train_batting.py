@@ -49,14 +49,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _batting_options import (
-    BeyondPaperOptions,
-    check,
-    paper_learner,
-    parse_flattening,
-    parse_widths,
-)
+from _batting_options import BeyondPaperOptions, check, paper_learner, parse_widths
 from _cli import ChunkOptions, SelectionOptions, field, parse
+from _flattening import parse_flattening
 
 
 @dataclass

@@ -64,7 +64,7 @@ def _restore_handlers(before: dict) -> BaseException | None:
             try:
                 signal.signal(sig, signal.SIG_DFL if handler is None else handler)
                 break
-            except BaseException as error:  # noqa: BLE001 (re-raised by the caller)
+            except BaseException as error:  # (re-raised by the caller)
                 raised = raised or error
     return raised
 
