@@ -20,6 +20,7 @@ Run::
     python benchmarks/bench_figure8.py --trials 20 100     # a quick look
     python benchmarks/bench_figure8.py --threads 2         # the CLI's and the floors' threads
     python benchmarks/bench_figure8.py --backend local     # one process only
+    python benchmarks/bench_figure8.py --trials 1000 --freed-memory retain return --repeats 3
 """
 
 from __future__ import annotations
@@ -42,10 +43,13 @@ SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3,) * 7}
 Z, K, N = 5, 4, 10  # repeats, candidates, steps (section 4.2)
 
 
-def run_cli(trials: int, threads: int, out: Path, backend: str, chunk_trials: int) -> dict:
+def run_cli(
+    trials: int, threads: int, out: Path, backend: str, chunk_trials: int, freed_memory: str
+) -> dict:
     """Wall time, the experiment's own time and the peak RSS (of its largest process) of one
     run of the CLI, its trials in chunks of at most ``chunk_trials``."""
     command = [sys.executable, str(CLI), "--trials", str(trials), "--threads", str(threads)]
+    command += ["--freed-memory", freed_memory]
     command += ["--out-dir", str(out), "--overwrite", "--backend", backend]
     command += ["--chunks", str(-(-trials // chunk_trials))]
     wrapper = (
@@ -64,11 +68,16 @@ def run_cli(trials: int, threads: int, out: Path, backend: str, chunk_trials: in
     return {"wall_s": float(wall), "compute_s": payload["wall_seconds"], "rss_mb": int(rss) / 1024}
 
 
-def startup_seconds(repeats: int = 3) -> float:
-    """Median time of a process that imports what the CLI imports, and nothing else."""
+def startup_seconds(repeats: int = 3, collector_off: bool = True) -> float:
+    """Median time of a process that imports what the CLI imports, and nothing else, then
+    exits; ``collector_off``: as the CLI does it (examples/_process.py: the garbage collector
+    off during the imports, what they made frozen after), else with Python's defaults."""
     imports = (
-        f"import sys; sys.path.insert(0, {str(CLI.parent)!r}); import _harness, _figures, torch;"
-        "import envs.chain_walk, envs.chain_walk.exact, torch_api.policies"
+        f"import sys; sys.path.insert(0, {str(CLI.parent)!r}); import gc;"
+        f"{'gc.disable();' if collector_off else ''}"
+        "import _harness, _figures, torch;"
+        "import envs.chain_walk, envs.chain_walk.exact, torch_api.policies;"
+        f"{'gc.freeze(); gc.enable()' if collector_off else ''}"
     )
     times = []
     for _ in range(repeats):
@@ -166,6 +175,16 @@ def main() -> None:
     )
     parser.add_argument("--startup-repeats", type=int, default=3)
     parser.add_argument(
+        "--freed-memory",
+        nargs="+",
+        default=["retain"],
+        choices=("retain", "return"),
+        help="the CLI's --freed-memory, each measured (retain: its default)",
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="runs of each configuration (medians shown)"
+    )
+    parser.add_argument(
         "--count-trials", type=int, default=10, help="trials of the run whose draws are counted"
     )
     parser.add_argument("--out", type=Path, default=None, help="also write the table as JSON")
@@ -173,34 +192,48 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(machine_info())
     startup = startup_seconds(args.startup_repeats)
+    startup_default = startup_seconds(args.startup_repeats, collector_off=False)
+    print(
+        f"start-up (the CLI's imports, then exit): {startup:.2f} s with the collector off and "
+        f"frozen as in the CLIs, {startup_default:.2f} s with Python's defaults (medians of "
+        f"{args.startup_repeats})"
+    )
     words, calls = count_draws(args.count_trials)
     rows = []
     print(
-        "| trials | backend | wall s | compute s | start-up s | rng floor s | algebra floor s "
-        "| peak RSS MB |"
+        "| trials | backend | freed memory | wall s | compute s | start-up s | rng floor s "
+        "| algebra floor s | peak RSS MB |"
     )
-    print("|---:|---|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---|---:|---:|---:|---:|---:|---:|")
     for trials in args.trials:
-        floors = {
+        configs = [(b, f) for b in args.backend for f in args.freed_memory]
+        runs = {config: [] for config in configs}
+        for _ in range(args.repeats):  # the configurations side by side, in turn
+            for backend, freed in configs:
+                with tempfile.TemporaryDirectory() as out:
+                    runs[backend, freed].append(
+                        run_cli(trials, args.threads, Path(out), backend, args.chunk_trials, freed)
+                    )
+        floors = {  # after the CLI's runs: what the floors hold does not shrink their memory check
             "rng_floor_s": rng_floor(words * trials // args.count_trials, calls),
             "algebra_floor_s": algebra_floor(trials),
         }
-        for backend in args.backend:
-            with tempfile.TemporaryDirectory() as out:
-                run = run_cli(trials, args.threads, Path(out), backend, args.chunk_trials)
-            row = {"trials": trials, "backend": backend, **run, "startup_s": startup, **floors}
+        for (backend, freed), done in runs.items():
+            run = {key: statistics.median(r[key] for r in done) for key in done[0]}
+            row = {"trials": trials, "backend": backend, "freed_memory": freed, **run}
+            row.update(startup_s=startup, repeats=args.repeats, **floors)
             rows.append(row)
             print(
-                f"| {trials:,} | {backend} | {row['wall_s']:.1f} | {row['compute_s']:.1f} | "
-                f"{startup:.1f} | {row['rng_floor_s']:.2f} | {row['algebra_floor_s']:.2f} | "
-                f"{row['rss_mb']:.0f} |"
+                f"| {trials:,} | {backend} | {freed} | {row['wall_s']:.1f} | "
+                f"{row['compute_s']:.1f} | {startup:.1f} | {row['rng_floor_s']:.2f} | "
+                f"{row['algebra_floor_s']:.2f} | {row['rss_mb']:.0f} |"
             )
-    for backend in args.backend:
-        mine = [row for row in rows if row["backend"] == backend]
+    for backend, freed in configs:
+        mine = [r for r in rows if (r["backend"], r["freed_memory"]) == (backend, freed)]
         if len(mine) > 1:
             first, last = mine[0], mine[-1]
             print(
-                f"{backend}: wall ratio T={last['trials']} / T={first['trials']}: "
+                f"{backend}, {freed}: wall ratio T={last['trials']} / T={first['trials']}: "
                 f"{last['wall_s'] / first['wall_s']:.2f}"
             )
     if args.out is not None:

@@ -99,19 +99,18 @@ _THREADS = (
     "torch intra-op threads (0: torch's default, one per core). 1 holds up under load: Figure "
     "8 at 200 trials took 20.9 s with 1 and 190.8 s with 2 on 2 loaded cores"
 )
+_MEMORY = (
+    "freed memory: retain (glibc keeps it for the next tensor: examples/_process.py) or return "
+    "(glibc's defaults: large blocks go back to the system at once)"
+)
 
 
 @dataclasses.dataclass
 class ThreadOptions:
-    """torch's thread count, in every script that computes with torch (:func:`use_threads`)."""
+    """torch's threads and freed memory, in every script that computes with torch."""
 
     threads: int = field(1, low=0, high=MAX_THREADS, help=_THREADS)
-
-
-def use_threads(args) -> None:
-    """Set torch's intra-op threads from ``args.threads`` (0: leave torch's default)."""
-    if args.threads > 0:
-        __import__("torch").set_num_threads(args.threads)
+    freed_memory: str = field("retain", choices=("retain", "return"), help=_MEMORY)
 
 
 @dataclasses.dataclass

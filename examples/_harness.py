@@ -40,10 +40,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _durable import durable_runs, folder_held, stored_runs_error  # noqa: F401
 
 # the harness is the examples' one entry: the numbers' and the durable runs' parts re-exported
-from _cli import use_threads
-from _durable import durable_runs, folder_held, stored_runs_error  # noqa: F401
+from _process import configure_process
 from _results import (  # noqa: F401
     COLUMNS,
     METHODS,
@@ -216,7 +216,7 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
     does not travel).
     """
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # quiet storage-creation notices
-    use_threads(args)
+    configure_process(args)
     out = Path(args.out_dir)
     backend, chunks = getattr(args, "backend", "local"), getattr(args, "chunks", 1)
     runs = [(name, method) for name in experiment.schedules for method in METHODS]

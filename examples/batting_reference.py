@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from _cli import field, not_here, parse
+from _process import collector_off_for_imports, freeze_imported_objects
 
 
 @dataclass
@@ -45,6 +46,7 @@ def parse_args(argv: list[str] | None = None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 import itertools
 import json
@@ -132,4 +134,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main(parse_args())

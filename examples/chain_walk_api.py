@@ -56,6 +56,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from _cli import BACKENDS, ChunkOptions, SelectionOptions, field, parse
+from _process import collector_off_for_imports, freeze_imported_objects
 from _sizes import memory_error
 
 
@@ -130,6 +131,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 from pathlib import Path
 
@@ -264,4 +266,5 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()

@@ -21,7 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from _cli import SelectionOptions, ThreadOptions, field, not_here, parse, use_threads
+from _cli import SelectionOptions, ThreadOptions, field, not_here, parse
+from _process import collector_off_for_imports, configure_process, freeze_imported_objects
 
 
 @dataclass
@@ -46,6 +47,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 import dataclasses
 import json
@@ -252,7 +254,7 @@ def plot_boxes(results: dict, path: Path) -> None:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    use_threads(args)
+    configure_process(args)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -289,4 +291,5 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()

@@ -53,6 +53,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from _cli import RunOptions, SelectionOptions, field, parse
+from _process import collector_off_for_imports, freeze_imported_objects
 
 
 @dataclass
@@ -124,6 +125,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 import itertools
 import math
@@ -291,4 +293,5 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()

@@ -44,8 +44,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from _cli import SelectionOptions, ThreadOptions, field, not_here, parse, use_threads
+from _cli import SelectionOptions, ThreadOptions, field, not_here, parse
 from _flattening import parse_flattening
+from _process import collector_off_for_imports, configure_process, freeze_imported_objects
 
 ENVS = ("CartPole-v1", "MountainCar-v0")  # (_pipeline_envs.ENVS; light here for --help)
 
@@ -172,6 +173,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 import json
 import logging
@@ -211,7 +213,7 @@ def run_config(args: Args, mode: str, seed: int) -> dict:
 
 def main(argv=None) -> dict:
     args = resolved(parse_args(argv))
-    use_threads(args)
+    configure_process(args)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     out = Path(args.out_dir)
     seeds = range(args.seed, args.seed + args.seeds)
@@ -389,4 +391,5 @@ def run(args: Args, mode: str, seed_of_run: int, store: RunStore) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()

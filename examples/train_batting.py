@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from _batting_options import BeyondPaperOptions, check, paper_learner, parse_widths
 from _cli import ChunkOptions, SelectionOptions, field, parse
 from _flattening import parse_flattening
+from _process import collector_off_for_imports, freeze_imported_objects
 
 
 @dataclass
@@ -109,6 +110,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before the heavy imports below
+    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
 
 import os
 import zlib
@@ -357,4 +359,5 @@ def main(argv=None, on_checkpoint=None) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()
