@@ -147,3 +147,29 @@ def test_flattening_one_is_the_unflattened_j_to_the_bit():
     assert torch.equal(j_criterion(x, w, u, LAM, flattening=1.0), j_criterion(x, w, u, LAM))
     with pytest.raises(ValueError, match="cannot be flattened"):
         j_criterion(x, w, u, LAM, sq_weights=w**2, flattening=0.5)
+
+
+@pytest.mark.parametrize(
+    ("values", "expected"),
+    [
+        ([1.0, 2.0, 3.0], True),
+        ([1.0, float("nan"), 3.0], False),
+        ([1.0, float("inf"), 3.0], False),
+        ([float("inf"), float("-inf")], False),  # the sum is NaN
+        ([1e308, 1e308], True),  # finite entries whose sum overflows: the entry-wise test decides
+        ([1e308, 1e308, float("nan")], False),
+    ],
+)
+def test_all_finite_agrees_with_the_entry_wise_test(values, expected):
+    from torch_api._checks import all_finite
+
+    t = torch.tensor(values, dtype=torch.float64)
+    assert all_finite(t) is expected
+    assert bool(torch.isfinite(t).all()) is expected
+
+
+def test_a_nan_in_x_reaches_the_moments_check():
+    x = torch.ones(3, 2, dtype=torch.float64)
+    x[1, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        weighted_ridge(x, torch.ones(3), torch.ones(3), LAM)

@@ -12,6 +12,13 @@ HUGE_LAMBDA = 1e6  # λ above this shrinks θ towards 0 whatever the data: warne
 TINY_LAMBDA = 1e-10  # λ below this vanishes beside a design's entries: a singular one stays so
 
 
+def all_finite(t: torch.Tensor) -> bool:
+    """Whether every entry of ``t`` is finite. A finite sum proves it (NaN and ±inf propagate
+    through a sum, or cancel into NaN), so the entry-wise test runs only when the sum is not
+    finite (a bad entry, or finite entries that overflow): one reduction instead of a mask."""
+    return bool(torch.isfinite(t.sum())) or bool(torch.isfinite(t).all())
+
+
 def _check_lambda(lam: float) -> None:
     """λ must be a finite number in [TINY_LAMBDA, ∞); a huge one (θ shrunk to about 0) is
     warned about. A smaller λ is lost in rounding (``1 + 1e-300 == 1``): the fit of a design

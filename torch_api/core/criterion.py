@@ -24,6 +24,7 @@ from typing import NamedTuple
 import torch
 from tensordict import TensorDictBase
 
+from torch_api._checks import all_finite
 from torch_api.core.design import build_design
 from torch_api.core.grouped_design import group_sums, grouped_design
 from torch_api.core.psi import PsiHat
@@ -270,6 +271,6 @@ def _normalised(a_own, c_own, u_own, n_own, a_shared, c_shared, u_shared, n_shar
     u_tilde = (u_own.sum(-3) + u_shared) / n_0  # eq. 42 over D̄_0
     a_k = (a_own + a_shared.unsqueeze(-3)) / n_k  # A of Π_k
     c_k = (c_own + c_shared.unsqueeze(-3)) / n_k.pow(2)  # C of Π_k
-    if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):
+    if not (all_finite(a_k) and all_finite(c_k)):
         raise ValueError("the psi_hat design of the reward-free data contains NaN or inf")
     return PooledMoments(a=a_k, c=c_k, u=u_tilde.unsqueeze(-3), n=n_k[..., 0, 0])

@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from torch_api._checks import all_finite
 from torch_api.core.design import build_design
 from torch_api.core.psi import PsiHat
 from torch_api.core.solve import weighted_moment
@@ -175,6 +176,6 @@ def lstd_j_values(
     u_tilde = (u_own.sum(-3) + u_sh) / n_0
     a_k = (a_own + a_sh.unsqueeze(-3)) / n_k
     c_k = (c_own + c_sh.unsqueeze(-3)) / n_k.pow(2)
-    if not (torch.isfinite(a_k).all() and torch.isfinite(c_k).all()):
+    if not (all_finite(a_k) and all_finite(c_k)):
         raise ValueError("the LSTD design of the reward-free data contains NaN or inf")
     return lstd_j_from_moments(a_k, c_k, u_tilde.unsqueeze(-3), lam)

@@ -11,6 +11,7 @@ import warnings
 
 import torch
 
+from torch_api._checks import all_finite
 from torch_api.core.weights import flatten_weights
 
 __all__ = [
@@ -44,7 +45,7 @@ def _check_design(x: torch.Tensor, w: torch.Tensor, lam: float) -> None:
 
 def _check_moments(*moments: torch.Tensor) -> None:
     for moment in moments:
-        if not torch.isfinite(moment).all():
+        if not all_finite(moment):
             raise ValueError("x (the psi_hat design) contains NaN or inf")
 
 
