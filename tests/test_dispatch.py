@@ -125,8 +125,16 @@ def test_forked_workers_need_nothing_picklable_and_give_the_local_numbers():
     parts = [list(t) for t in split_trials(4, 2)]
     forked = run_chunks(run_trials, parts, backend="processes", workers=2, start_method="fork")
     assert forked == run_chunks(run_trials, parts)
-    with pytest.raises(Exception, match="pickle"):
-        run_chunks(closure, chunks, backend="processes", workers=2)  # spawn: must pickle
+
+
+def test_spawned_workers_refuse_an_unpicklable_function_before_any_worker_starts():
+    """Spawned workers must unpickle ``fn``: a closure is refused at the call with the fix
+    named, not by a worker pool's feeder thread (whose late errors Python reports as an
+    unhandled exception in a thread)."""
+    offset = 10
+    closure = lambda chunk: [x + offset for x in chunk]  # noqa: E731 (not picklable)
+    with pytest.raises(TypeError, match=r"not picklable.*start_method='fork'"):
+        run_chunks(closure, [[1, 2], [3], [4, 5, 6]], backend="processes", workers=2)
 
 
 def test_local_chunks_equal_one_batch():

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
 import signal
 import socket
 from collections.abc import Callable, Sequence
@@ -111,6 +112,19 @@ def _guarded_call(fn, pid: int, host: str, chunk):
     return fn(chunk)
 
 
+def _check_picklable(fn, start_method: str) -> None:
+    """A worker started with ``start_method`` (not forked) receives ``fn`` pickled: refuse one
+    that is not, here, rather than in the pool's feeder thread once workers are up."""
+    try:
+        pickle.dumps(fn)
+    except (pickle.PicklingError, AttributeError, TypeError) as error:
+        raise TypeError(
+            f"fn {fn!r} is not picklable ({error}), and workers started with "
+            f"start_method={start_method!r} receive it pickled: pass a top-level function, or "
+            "start_method='fork' (POSIX) to let the workers inherit it"
+        ) from error
+
+
 def _import_ray():
     try:
         import ray
@@ -182,6 +196,8 @@ def run_chunks(
         workers = workers or os.cpu_count() or 1
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
+        if start_method != "fork":
+            _check_picklable(fn, start_method)
         pool = ProcessPoolExecutor(
             max_workers=min(workers, len(chunks)),
             mp_context=multiprocessing.get_context(start_method),
