@@ -46,6 +46,7 @@ OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observatio
 GOOD = 475  # a greedy return at least this is "balanced" (of TEST_STEPS)
 TEST_STEPS = 500  # CartPole-v1's own cap
 FIRST_80 = (80,) + (5,) * 7  # a first iteration of 80 episodes of pi_1 (uniform), then 5
+FIRST_120 = (120,) + (4,) * 7  # the showcase's default since 2026-12-07: 120, then 4
 BASE = {"fit": "lstd", "schedule": (5,) * 6, "lam": 1e-3, "flattening": 1.0, "active": False}
 REMEDIES = {  # name: what differs from BASE
     "LSTD PL": {},
@@ -92,10 +93,10 @@ REMEDIES = {  # name: what differs from BASE
         "improvement": "softmax", "beta": 0.1,
     },
     "LSTD PL ν=0 quadratic, M_1=120, 7 × 4": {
-        "flattening": 0.0, "basis": "quadratic", "schedule": (120,) + (4,) * 7,
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120,
     },
     "LSTD PL ν=0 quadratic, M_1=120, 7 × 4, softmax β=0.1": {
-        "flattening": 0.0, "basis": "quadratic", "schedule": (120,) + (4,) * 7,
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120,
         "improvement": "softmax", "beta": 0.1,
     },
 }  # fmt: skip
