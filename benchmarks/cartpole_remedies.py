@@ -47,6 +47,8 @@ GOOD = 475  # a greedy return at least this is "balanced" (of TEST_STEPS)
 TEST_STEPS = 500  # CartPole-v1's own cap
 FIRST_80 = (80,) + (5,) * 7  # a first iteration of 80 episodes of pi_1 (uniform), then 5
 FIRST_120 = (120,) + (4,) * 7  # the showcase's default since 2026-12-07: 120, then 4
+FIRST_120_3 = (120,) + (3,) * 9  # the same first batch, then 9 iterations of 3
+FIRST_120_2 = (120,) + (2,) * 14  # ... then 14 iterations of 2
 BASE = {"fit": "lstd", "schedule": (5,) * 6, "lam": 1e-3, "flattening": 1.0, "active": False}
 REMEDIES = {  # name: what differs from BASE
     "LSTD PL": {},
@@ -98,6 +100,22 @@ REMEDIES = {  # name: what differs from BASE
     "LSTD PL ν=0 quadratic, M_1=120, 7 × 4, softmax β=0.1": {
         "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120,
         "improvement": "softmax", "beta": 0.1,
+    },
+    "LSTD PL ν=0 quadratic, M_1=120, 9 × 3": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120_3,
+    },
+    "LSTD PL ν=0 quadratic, M_1=120, 14 × 2": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120_2,
+    },
+    "LSTD AL ν=0 quadratic, M_1=120, 9 × 3": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120_3, "active": True,
+    },
+    "LSTD AL ν=0 quadratic, M_1=120, 7 × 4": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120, "active": True,
+    },
+    "LSTD AL ν=0 quadratic, M_1=120, 7 × 4, softmax β=0.1": {
+        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120,
+        "improvement": "softmax", "beta": 0.1, "active": True,
     },
 }  # fmt: skip
 

@@ -34,6 +34,7 @@ BAD_FLAG = {
     "chain_walk_api.py": ("--trials", "-3", "--trials must be >= 2"),
     "chain_walk_one_step.py": ("--trials", "-3", "--trials must be >= 1, got -3"),
     "gym_drop_in.py": ("--trials", "-3", "--trials must be >= 2"),
+    "merge_pipeline_runs.py": ("--runs", "", "--runs must name at least one folder"),
     "plot_batting_episode.py": ("--snapshot-ms", "-3", "--snapshot-ms must be > 0, got -3.0"),
     "train_batting.py": ("--trials", "-3", "--trials must be >= 1, got -3"),
     "torchrl_pipeline.py": ("--episodes", "-3", "--episodes must be >= 0, got -3"),

@@ -309,6 +309,41 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert _outputs(tmp_path, "gym_drop_in") == expected
 
 
+MERGE_RUN = ("--iterations", "2", "--first-episodes", "3", "--episodes", "2", "--steps", "20")
+MERGE_RUN += ("--reward-free-episodes", "1", "--repeats", "1")
+MERGE_RUN += ("--test-episodes", "1", "--test-steps", "20")
+
+
+def test_merged_pipeline_runs_equal_one_run_over_their_seeds(tmp_path):
+    """The showcase's seeds run as separate processes (AL beside PL, seeds split), merged by
+    ``merge_pipeline_runs.py``: the summary, the paired t-test and every run's numbers are
+    those of one process over all the seeds; another setting or a conflicting seed is
+    refused."""
+    import merge_pipeline_runs
+
+    _run("torchrl_pipeline.py", *MERGE_RUN, "--seeds", "2", "--out-dir", str(tmp_path / "one"))
+    parts = {"al": ("--modes", "AL", "--seeds", "2"), "pl0": ("--modes", "PL", "--seeds", "1")}
+    parts["pl1"] = ("--modes", "PL", "--seeds", "1", "--seed", "1")
+    for name, flags in parts.items():
+        _run("torchrl_pipeline.py", *MERGE_RUN, *flags, "--out-dir", str(tmp_path / name))
+    dirs = ",".join(str(tmp_path / name) for name in parts)
+    merge_pipeline_runs.main(["--runs", dirs, "--out-dir", str(tmp_path / "merged")])
+    one = json.loads((tmp_path / "one" / "torchrl_pipeline.json").read_text())
+    merged = json.loads((tmp_path / "merged" / "torchrl_pipeline.json").read_text())
+    assert merged["summary"]["AL"]["seeds"] == [0, 1] == merged["summary"]["PL"]["seeds"]
+    assert _without_times(merged) == _without_times(one)  # runs, summary, t-test, the actor
+    _check_png(tmp_path / "merged" / "torchrl_pipeline.png")
+
+    other = json.loads((tmp_path / "pl1" / "torchrl_pipeline.json").read_text())
+    other["args"]["gamma"] = 0.99
+    with pytest.raises(ValueError, match=r"another setting: \['gamma'\]"):
+        merge_pipeline_runs.merge([one, other])
+    other = json.loads((tmp_path / "pl1" / "torchrl_pipeline.json").read_text())
+    other["runs"]["PL"]["1"]["history"][-1]["greedy_test_return"] += 1.0
+    with pytest.raises(ValueError, match="PL seed 1 appears twice with different numbers"):
+        merge_pipeline_runs.merge([one, other])
+
+
 PIPELINE_RUN = ("--env", "MountainCar-v0", "--modes", "AL", "--seeds", "1")
 PIPELINE_RUN += ("--iterations", "3", "--first-episodes", "2", "--episodes", "2")
 PIPELINE_RUN += ("--reward-free-episodes", "1")
