@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 from _cli import field, not_here, out_dir_error, parse
+from _process import collector_off_for_imports, freeze_imported_objects
 
 RESULTS = "torchrl_pipeline.json"
 PER_PROCESS = ("seeds", "seed", "modes", "out_dir", "resume", "overwrite", "threads")
@@ -58,6 +59,13 @@ def parse_args(argv=None) -> Args:
     return parse(Args, argv, __doc__, check=check, unavailable=unavailable)
 
 
+if __name__ == "__main__":
+    parse_args()  # --help and bad flags answer here, before matplotlib loads
+    collector_off_for_imports()  # examples/_process.py
+
+import _pipeline_report as report  # noqa: E402
+
+
 def setting(args: dict) -> dict:
     """The arguments that define what was learned (must agree between merged files)."""
     return {k: v for k, v in args.items() if k not in PER_PROCESS}
@@ -88,8 +96,6 @@ def merge(payloads: list[dict]) -> tuple[dict, dict, dict, float]:
 
 def main(argv=None) -> dict:
     options = parse_args(argv)
-    import _pipeline_report as report  # matplotlib: after the arguments are checked
-
     payloads = [json.loads((d / RESULTS).read_text()) for d in folders(options)]
     args, runs, actor, wall = merge(payloads)
     if set(runs) == {"AL", "PL"}:  # pair over the seeds both modes ran
@@ -98,7 +104,8 @@ def main(argv=None) -> dict:
     seeds = sorted({s for r in runs.values() for s in r})
     print(f"{len(payloads)} files: {len(seeds)} seeds, {seeds[0]} to {seeds[-1]}")
     merged = dataclasses.make_dataclass("MergedArgs", list(args))(**args)  # summarise's args
-    payload = report.summarise(merged, runs, actor, wall)  # wall: the processes' sum
+    payload = report.summarise(merged, runs, actor, wall)
+    print("(the wall time is the merged processes' sum)")
     payload["args"] = args | {"merged_from": [str(d) for d in folders(options)]}
     out = Path(options.out_dir)
     (out / RESULTS).write_text(json.dumps(payload, indent=1))
@@ -108,4 +115,5 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
+    freeze_imported_objects()
     main()
