@@ -107,15 +107,8 @@ REMEDIES = {  # name: what differs from BASE
     "LSTD PL ν=0 quadratic, M_1=120, 14 × 2": {
         "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120_2,
     },
-    "LSTD AL ν=0 quadratic, M_1=120, 9 × 3": {
-        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120_3, "active": True,
-    },
     "LSTD AL ν=0 quadratic, M_1=120, 7 × 4": {
         "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120, "active": True,
-    },
-    "LSTD AL ν=0 quadratic, M_1=120, 7 × 4, softmax β=0.1": {
-        "flattening": 0.0, "basis": "quadratic", "schedule": FIRST_120,
-        "improvement": "softmax", "beta": 0.1, "active": True,
     },
 }  # fmt: skip
 

@@ -80,10 +80,10 @@ def merge(payloads: list[dict]) -> tuple[dict, dict, dict, float]:
     runs: dict[str, dict[int, dict]] = {}
     actor: dict[int, float] = {}
     for p in payloads:
-        if setting(p["args"]) != first:
-            diff = {k for k in first.keys() | p["args"].keys() - set(PER_PROCESS)
-                    if first.get(k) != p["args"].get(k)}  # fmt: skip
-            raise ValueError(f"{p['args']['out_dir']} ran another setting: {sorted(diff)}")
+        theirs = setting(p["args"])
+        if theirs != first:
+            diff = sorted(k for k in first.keys() | theirs.keys() if first.get(k) != theirs.get(k))
+            raise ValueError(f"{p['args']['out_dir']} ran another setting: {diff}")
         for mode, by_seed in p["runs"].items():
             for seed, run in by_seed.items():
                 earlier = runs.setdefault(mode, {}).get(int(seed))
