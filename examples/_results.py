@@ -97,28 +97,50 @@ def print_t_tests(results: dict, trials: int) -> None:
 # -- files -----------------------------------------------------------------------------------
 
 
-def long_rows(results: dict) -> Iterator[tuple]:
-    """Every per-trial number of the experiment, one ``COLUMNS`` tuple each.
+_NUMBERS = (int, float)  # written by str() as they are (a bool is written by _field)
+
+
+def _field(value) -> str:
+    """``value`` as ``csv.writer`` writes a field of a row (the excel dialect): None empty,
+    numbers by ``str``, a text quoted where it holds a comma, a quote or a line break."""
+    if value is None:
+        return ""
+    text = str(value)
+    if any(c in text for c in ',"\r\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def csv_lines(results: dict) -> Iterator[str]:
+    """Every per-trial number of the experiment, one CSV line (:data:`COLUMNS`, ending in
+    ``\r\n``) each, byte for byte what ``csv.writer`` writes of the same rows, header first.
 
     A list over trials gives trial t its element; a number of the iteration (the same for
     every trial, e.g. ``rewarded_transitions``) is repeated per trial; a vector per trial
     (``j_mean``, J' of the K candidates) becomes measures ``j_mean_k1`` … ``j_mean_kK``.
+    (Formatted here rather than by ``csv.writer``: 356,000 rows at 1,000 trials of Figure 8
+    took 0.55-0.6 s there, 0.24 s here.)
     """
+    yield ",".join(COLUMNS) + "\r\n"
     for name, entry in results.items():
         for method, run in entry["runs"].items():
             for it in run["iterations"]:
+                measures = [(k, _field(k), v) for k, v in it.items() if k not in NOT_IN_CSV]
                 trials = max(len(v) for v in it.values() if isinstance(v, list))
+                head = ",".join(map(_field, (name, method, run["seed"], it["iteration"])))
                 for t in range(trials):
-                    head = (name, method, run["seed"], it["iteration"], t)
-                    for key, value in it.items():
+                    prefix = f"{head},{t},"
+                    for key, field, value in measures:
                         value = value[t] if isinstance(value, list) else value
-                        if key in NOT_IN_CSV or value is None:
+                        if value is None:
                             continue
                         if isinstance(value, list):
-                            for k, x in enumerate(value):
-                                yield (*head, f"{key}_k{k + 1}", x)
+                            for k, x in enumerate(value, 1):
+                                x = x if type(x) in _NUMBERS else _field(x)
+                                yield f"{prefix}{_field(f'{key}_k{k}')},{x}\r\n"
                         else:
-                            yield (*head, key, value)
+                            value = value if type(value) in _NUMBERS else _field(value)
+                            yield f"{prefix}{field},{value}\r\n"
 
 
 def read_results(path: str | os.PathLike) -> dict[tuple, list]:
@@ -134,7 +156,7 @@ def read_results(path: str | os.PathLike) -> dict[tuple, list]:
 
 
 def write_results(args, experiment: Experiment, results: dict, wall: float, **extra) -> dict:
-    """``<name>.csv`` (:func:`long_rows`) and ``<name>.json`` (arguments, wall time, t-tests,
+    """``<name>.csv`` (:func:`csv_lines`) and ``<name>.json`` (arguments, wall time, t-tests,
     the runs' settings and totals; ``extra``: more entries) in ``--out-dir``; the learning
     curves with ``--logger``.
 
@@ -142,9 +164,7 @@ def write_results(args, experiment: Experiment, results: dict, wall: float, **ex
     """
     out = Path(args.out_dir)
     with (out / f"{experiment.name}.csv").open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(COLUMNS)
-        writer.writerows(long_rows(results))
+        handle.write("".join(csv_lines(results)))
     summary = {
         name: {
             "schedule": entry["schedule"],

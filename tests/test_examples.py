@@ -419,6 +419,42 @@ def test_the_long_layout_holds_every_number_once_and_reads_back(tmp_path):
     assert "seconds" not in (tmp_path / "x.csv").read_text()  # wall times: in the JSON only
 
 
+def test_the_csv_lines_are_what_csv_writer_writes():
+    """``csv_lines`` formats the rows itself (faster than ``csv.writer``): its bytes equal
+    ``csv.writer``'s of the same rows, and ``csv.reader`` reads back every field, texts that
+    need quoting, bools and missing entries of a vector included."""
+    import csv
+    import io
+
+    from _results import csv_lines
+
+    row = {
+        "iteration": 2,
+        "seconds": 0.1,
+        "test_return": [0.1, 1e-300, -2.5e17],
+        "chosen": [1, None, 3],
+        "rule": ['eps, "0.1"', "line\nbreak", "plain"],
+        "flag": True,
+        "j_mean": [[0.25, None], None, [1.0, 2.0]],
+    }
+    results = {"a,b": {"runs": {"AL": {"seed": -3, "iterations": [row]}}}}
+    expected = [list(COLUMNS)]
+    for t in range(3):
+        head = ["a,b", "AL", "-3", "2", str(t)]
+        for key in ("test_return", "chosen", "rule", "flag", "j_mean"):
+            value = row[key][t] if isinstance(row[key], list) else row[key]
+            if isinstance(value, list):
+                for k, x in enumerate(value, 1):
+                    expected.append([*head, f"{key}_k{k}", "" if x is None else str(x)])
+            elif value is not None:
+                expected.append([*head, key, str(value)])
+    text = "".join(csv_lines(results))
+    assert list(csv.reader(io.StringIO(text, newline=""))) == expected
+    handle = io.StringIO(newline="")
+    csv.writer(handle).writerows(expected)
+    assert text == handle.getvalue()
+
+
 def test_the_paired_test_is_scipys_ttest_rel():
     """``paired_test`` (Student's t from scipy.special, lighter to import than scipy.stats)
     gives ``scipy.stats.ttest_rel``'s statistic and two-tailed p-value, to 1e-12."""
