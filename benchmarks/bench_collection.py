@@ -103,6 +103,13 @@ def via_collector(env, policy, episodes: int):
 def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[16, 256, 2048])
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        choices=("chain", "batting"),
+        default=["chain", "batting"],
+        help="the paper's tasks measured at --sizes: the chain walk, batting (default: both)",
+    )
     parser.add_argument("--budget", type=float, default=1.0, help="seconds per method and size")
     parser.add_argument("--repeats", type=int, default=3, help="least timed rounds per size")
     parser.add_argument(
@@ -121,10 +128,11 @@ def main() -> dict:
     info = machine_info()
     print(f"# bench_collection: torch {info['torch']}, {torch.get_num_threads()} thread(s)")
     rows = []
-    for task, make_env, make_policy in (
-        ("chain walk", chain_walk_env, chain_walk_policy),
-        ("batting", batting_env, batting_policy),
-    ):
+    tasks = {
+        "chain": ("chain walk", chain_walk_env, chain_walk_policy),
+        "batting": ("batting", batting_env, batting_policy),
+    }
+    for task, make_env, make_policy in (tasks[key] for key in tasks if key in args.tasks):
         for episodes in args.sizes:
             env, policy = make_env(episodes), make_policy()
             times = median_times(

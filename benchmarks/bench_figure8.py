@@ -175,6 +175,11 @@ def main() -> None:
     )
     parser.add_argument("--startup-repeats", type=int, default=3)
     parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: start-up measured only as the CLIs start (not with Python's defaults)",
+    )
+    parser.add_argument(
         "--freed-memory",
         nargs="+",
         default=["retain"],
@@ -192,10 +197,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(machine_info())
     startup = startup_seconds(args.startup_repeats)
-    startup_default = startup_seconds(args.startup_repeats, collector_off=False)
+    defaults = (
+        "not measured (--quick)"
+        if args.quick
+        else f"{startup_seconds(args.startup_repeats, collector_off=False):.2f} s"
+    )
     print(
         f"start-up (the CLI's imports, then exit): {startup:.2f} s with the collector off and "
-        f"frozen as in the CLIs, {startup_default:.2f} s with Python's defaults (medians of "
+        f"frozen as in the CLIs, {defaults} with Python's defaults (medians of "
         f"{args.startup_repeats})"
     )
     words, calls = count_draws(args.count_trials)

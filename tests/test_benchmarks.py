@@ -29,14 +29,14 @@ BENCHMARKS = ROOT / "benchmarks"
         ),
         (
             ["bench_collection.py", "--sizes", "4", "--budget", "0.01", "--repeats", "1"]
-            + ["--warmup", "0", "--slow-size", "4"],
+            + ["--warmup", "0", "--slow-size", "4", "--tasks", "chain"],
             "| slow chain walk (500 µs per row-step) | 4 |",
         ),
         (["bench_device.py", "--quick"], "| cpu | 4 | "),
         (["bench_durability.py", "--repeats", "1"], "ms per episode index"),
         (
             ["bench_figure8.py", "--trials", "2", "--startup-repeats", "1", "--count-trials", "2"]
-            + ["--backend", "processes"],
+            + ["--backend", "processes", "--quick"],
             "| 2 | processes | ",
         ),
         (["durability_attacks.py", "--tries", "4"], "SIGTERM at statement k: resumed"),

@@ -199,14 +199,23 @@ def test_chain_walk_api_on_ray_gives_the_local_numbers(chain_walk_one_chunk, tmp
     _check_png(tmp_path / "fig8_performance.png")
 
 
-def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(tmp_path):
-    _run(
-        "torchrl_pipeline.py",
-        *("--seeds", "2", "--iterations", "2", "--first-episodes", "3", "--episodes", "2"),
-        *("--reward-free-episodes", "1", "--repeats", "1", "--steps", "20"),
-        *("--test-episodes", "2", "--test-steps", "30", "--out-dir", str(tmp_path)),
-    )
-    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+PIPELINE_TINY = ("--iterations", "2", "--first-episodes", "3", "--episodes", "2")
+PIPELINE_TINY += ("--reward-free-episodes", "1", "--repeats", "1", "--steps", "20")
+PIPELINE_TINY += ("--test-episodes", "2", "--test-steps", "30")
+
+
+@pytest.fixture(scope="module")
+def pipeline_two_seeds(tmp_path_factory) -> dict:
+    """The showcase's defaults (CartPole, AL and PL) at a tiny budget over seeds 0 and 1, in
+    one process: its JSON."""
+    out = tmp_path_factory.mktemp("pipeline_two_seeds")
+    _run("torchrl_pipeline.py", *PIPELINE_TINY, "--seeds", "2", "--out-dir", str(out))
+    _check_png(out / "torchrl_pipeline.png")
+    return json.loads((out / "torchrl_pipeline.json").read_text())
+
+
+def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(pipeline_two_seeds):
+    payload = pipeline_two_seeds
     args = payload["args"]
     assert args["env"] == "CartPole-v1" and args["basis"] == "quadratic" and args["fit"] == "lstd"
     assert set(payload["runs"]) == {"AL", "PL"} and set(payload["runs"]["AL"]) == {"0", "1"}
@@ -220,7 +229,6 @@ def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(tmp_path):
             assert all(len(h["j_mean"]) == (4 if mode == "AL" else 0) for h in history)
     assert payload["summary"]["PL"]["seeds"] == [0, 1] and payload["t_test"] is not None
     assert all(math.isfinite(x) for x in _numbers(payload["runs"]))
-    _check_png(tmp_path / "torchrl_pipeline.png")
 
 
 def test_torchrl_pipeline_active_runs_are_reproducible(tmp_path):
@@ -309,26 +317,20 @@ def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
     assert _outputs(tmp_path, "gym_drop_in") == expected
 
 
-MERGE_RUN = ("--iterations", "2", "--first-episodes", "3", "--episodes", "2", "--steps", "20")
-MERGE_RUN += ("--reward-free-episodes", "1", "--repeats", "1")
-MERGE_RUN += ("--test-episodes", "1", "--test-steps", "20")
-
-
-def test_merged_pipeline_runs_equal_one_run_over_their_seeds(tmp_path):
+def test_merged_pipeline_runs_equal_one_run_over_their_seeds(pipeline_two_seeds, tmp_path):
     """The showcase's seeds run as separate processes (AL beside PL, seeds split), merged by
     ``merge_pipeline_runs.py``: the summary, the paired t-test and every run's numbers are
     those of one process over all the seeds; another setting or a conflicting seed is
     refused."""
     import merge_pipeline_runs
 
-    _run("torchrl_pipeline.py", *MERGE_RUN, "--seeds", "2", "--out-dir", str(tmp_path / "one"))
     parts = {"al": ("--modes", "AL", "--seeds", "2"), "pl0": ("--modes", "PL", "--seeds", "1")}
     parts["pl1"] = ("--modes", "PL", "--seeds", "1", "--seed", "1")
     for name, flags in parts.items():
-        _run("torchrl_pipeline.py", *MERGE_RUN, *flags, "--out-dir", str(tmp_path / name))
+        _run("torchrl_pipeline.py", *PIPELINE_TINY, *flags, "--out-dir", str(tmp_path / name))
     dirs = ",".join(str(tmp_path / name) for name in parts)
     merge_pipeline_runs.main(["--runs", dirs, "--out-dir", str(tmp_path / "merged")])
-    one = json.loads((tmp_path / "one" / "torchrl_pipeline.json").read_text())
+    one = pipeline_two_seeds
     merged = json.loads((tmp_path / "merged" / "torchrl_pipeline.json").read_text())
     assert merged["summary"]["AL"]["seeds"] == [0, 1] == merged["summary"]["PL"]["seeds"]
     assert _without_times(merged) == _without_times(one)  # runs, summary, t-test, the actor
