@@ -246,20 +246,28 @@ def test_torchrl_pipeline_active_runs_are_reproducible(tmp_path):
     assert runs[0] == runs[1]
 
 
-def test_torchrl_pipeline_mountain_car_with_the_actor_s_warm_start(tmp_path):
-    _run(
-        "torchrl_pipeline.py",
-        *("--env", "MountainCar-v0", "--modes", "AL", "--first-sampler", "actor"),
-        *("--iterations", "2", "--episodes", "2", "--first-episodes", "2"),
-        *("--reward-free-episodes", "1", "--repeats", "1", "--steps", "20"),
-        *("--test-episodes", "2", "--out-dir", str(tmp_path)),
-    )
-    payload = json.loads((tmp_path / "torchrl_pipeline.json").read_text())
+PIPELINE_RUN = ("--env", "MountainCar-v0", "--modes", "AL", "--seeds", "1")
+PIPELINE_RUN += ("--first-sampler", "actor", "--iterations", "3", "--first-episodes", "2")
+PIPELINE_RUN += ("--episodes", "2", "--reward-free-episodes", "1")
+PIPELINE_RUN += ("--repeats", "1", "--steps", "20", "--test-episodes", "2")
+
+
+@pytest.fixture(scope="module")
+def mountain_car_run(tmp_path_factory) -> dict:
+    """MountainCar, AL alone, iteration 1 bought by the user's actor, in one uninterrupted
+    process: its JSON."""
+    out = tmp_path_factory.mktemp("mountain_car")
+    _run("torchrl_pipeline.py", *PIPELINE_RUN, "--out-dir", str(out))
+    return json.loads((out / "torchrl_pipeline.json").read_text())
+
+
+def test_torchrl_pipeline_mountain_car_with_the_actor_s_warm_start(mountain_car_run):
+    payload = mountain_car_run
     assert payload["args"]["fit"] == "brm" and payload["args"]["test_steps"] == 200
     history = payload["runs"]["AL"]["0"]["history"]
     assert history[0]["chosen"] == "the actor's warm start" and history[0]["j_mean"] == []
     assert len(history[1]["j_mean"]) == 5  # four θ policies and the actor
-    assert history[-1]["rewarded_transitions"] == 2 * 2 * 20  # MountainCar: no early end here
+    assert history[-1]["rewarded_transitions"] == 3 * 2 * 20  # MountainCar: no early end here
     assert payload["runs"]["PL"] == {} and payload["t_test"] is None
     assert all(math.isfinite(x) for x in _numbers(payload["runs"]))
 
@@ -346,20 +354,13 @@ def test_merged_pipeline_runs_equal_one_run_over_their_seeds(pipeline_two_seeds,
         merge_pipeline_runs.merge([one, other])
 
 
-PIPELINE_RUN = ("--env", "MountainCar-v0", "--modes", "AL", "--seeds", "1")
-PIPELINE_RUN += ("--iterations", "3", "--first-episodes", "2", "--episodes", "2")
-PIPELINE_RUN += ("--reward-free-episodes", "1")
-PIPELINE_RUN += ("--repeats", "1", "--steps", "20", "--test-episodes", "2")
-
-
-def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(tmp_path):
+def test_torchrl_pipeline_killed_then_resumed_gives_the_same_numbers(mountain_car_run, tmp_path):
     """The user's Collector and ProbabilisticActor, SIGKILLed once a bought episode is stored:
     --resume keeps every stored reward (buys only the rest) and ends with the numbers of an
     uninterrupted run; a second run into the folder without --resume/--overwrite is refused."""
     from torch_api.runs.store import RunStore
 
-    _run("torchrl_pipeline.py", *PIPELINE_RUN, "--out-dir", str(tmp_path / "ref"))
-    expected = _without_times(json.loads((tmp_path / "ref" / "torchrl_pipeline.json").read_text()))
+    expected = _without_times(mountain_car_run)
     args = (*PIPELINE_RUN, "--out-dir", str(tmp_path))
     store = tmp_path / "checkpoints" / "AL_seed0.db"
     proc = start_example("torchrl_pipeline.py", *args)
