@@ -106,12 +106,20 @@ def test_chain_walk_api(tmp_path):
     assert (curves / "fixed" / "AL" / "effective_sample_size.csv").exists()
 
 
-def test_gym_drop_in(tmp_path):
-    _run(
-        "gym_drop_in.py",
-        *("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2"),
-        *("--test-episodes", "2", "--test-steps", "20", "--out-dir", str(tmp_path)),
-    )
+GYM_TINY = ("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2")
+GYM_TINY += ("--test-episodes", "2", "--test-steps", "20")
+
+
+@pytest.fixture(scope="module")
+def gym_drop_in_run(tmp_path_factory) -> tuple[Path, str]:
+    """``gym_drop_in.py`` at a tiny budget, uninterrupted, asked to ``--resume`` a folder that
+    holds no runs yet: its folder and its output."""
+    out = tmp_path_factory.mktemp("gym_drop_in")
+    return out, _run("gym_drop_in.py", *GYM_TINY, "--out-dir", str(out), "--resume")
+
+
+def test_gym_drop_in(gym_drop_in_run):
+    tmp_path, _ = gym_drop_in_run
     payload = _check_json(tmp_path / "gym_drop_in.json")
     runs = payload["summary"]["custom"]["runs"]
     assert set(runs) == {"AL", "PL"}
@@ -306,13 +314,11 @@ def test_chain_walk_api_killed_then_resumed_gives_the_same_numbers(chain_walk_on
     assert _outputs(tmp_path) == chain_walk_one_chunk
 
 
-def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(tmp_path):
-    args = ("--trials", "2", "--schedule", "2,2", "--steps", "10", "--repeats", "2")
-    args += ("--test-episodes", "2", "--test-steps", "20")
-    fresh = _run("gym_drop_in.py", *args, "--out-dir", str(tmp_path / "ref"), "--resume")
+def test_gym_drop_in_interrupted_says_so_in_one_line_and_resumes(gym_drop_in_run, tmp_path):
+    reference, fresh = gym_drop_in_run
     assert "starting it fresh" in fresh
-    expected = _outputs(tmp_path / "ref", "gym_drop_in")
-    args += ("--out-dir", str(tmp_path))
+    expected = _outputs(reference, "gym_drop_in")
+    args = (*GYM_TINY, "--out-dir", str(tmp_path))
     proc = start_example("gym_drop_in.py", *args)
     wait_for_episodes(tmp_path / "checkpoints" / "active.db", 2, proc)
     proc.send_signal(signal.SIGINT)
