@@ -81,6 +81,35 @@ def test_a_script_run_as_a_command_reaches_main_with_the_collector_on_and_import
     assert (tmp_path / "out" / "chain_walk_api.csv").exists()
 
 
+def test_a_script_runs_without_loading_torchs_compiler_and_gives_the_same_numbers(tmp_path):
+    """A script run as a command never loads ``torch._dynamo`` (TensorDict's import-time
+    decorators and TorchRL's rollouts answered by the stand-in), writes the CSV of a run in this
+    process (where the real module is loaded) byte for byte, and ``torch.compile`` still works
+    in it afterwards (the real module loaded on demand, a compiled module recognised)."""
+    out = _python(
+        f"""
+        import runpy, sys
+        sys.argv = ["chain_walk_api.py", *{TINY!r}, "--out-dir", "out"]
+        runpy.run_path({str(EXAMPLES / "chain_walk_api.py")!r}, run_name="__main__")
+        print("compiler loaded by the run:", "torch._dynamo.convert_frame" in sys.modules)
+        import torch, torchrl.envs.utils
+        compiled = torch.compile(torch.nn.Linear(2, 2), backend="eager")
+        assert torch.equal(compiled(torch.ones(1, 2)), compiled._orig_mod(torch.ones(1, 2)))
+        assert isinstance(compiled, torch._dynamo.eval_frame.OptimizedModule)
+        print("compiled afterwards:", "torch._dynamo.convert_frame" in sys.modules)
+        """,
+        tmp_path,
+    )
+    assert "compiler loaded by the run: False" in out and "compiled afterwards: True" in out
+    sys.path.insert(0, str(EXAMPLES))
+    import chain_walk_api
+
+    assert "torch._dynamo.convert_frame" in sys.modules  # here: TensorDict loaded the real one
+    chain_walk_api.main([*TINY, "--out-dir", str(tmp_path / "in_process")])
+    written = (tmp_path / "out" / "chain_walk_api.csv").read_bytes()
+    assert written == (tmp_path / "in_process" / "chain_walk_api.csv").read_bytes()
+
+
 def test_main_called_in_process_leaves_the_callers_collector_alone(tmp_path):
     sys.path.insert(0, str(EXAMPLES))
     import chain_walk_api
