@@ -138,11 +138,15 @@ class _CompilerDeferred(types.ModuleType):
         return getattr(_real_dynamo(), name)
 
 
-def collector_off_for_imports() -> None:
+def collector_off_for_imports(*, torch_follows: bool = True) -> None:
     """Switch the cyclic garbage collector off for the heavy imports that follow (see the
-    module; :func:`freeze_imported_objects` switches it on again), and put the stand-in for
-    torch's compiler in place for the rest of the process."""
+    module; :func:`freeze_imported_objects` switches it on again) and, where they include
+    torch (``torch_follows``), import it and put the stand-in for its compiler in place for the
+    rest of the process (a script that never imports torch passes False and does not load it
+    here)."""
     gc.disable()
+    if not torch_follows:
+        return
     import torch  # noqa: F401  (first: torch's own import must find the real modules)
 
     if "torch._dynamo" not in sys.modules:

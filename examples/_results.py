@@ -119,7 +119,7 @@ def csv_lines(results: dict) -> Iterator[str]:
     every trial, e.g. ``rewarded_transitions``) is repeated per trial; a vector per trial
     (``j_mean``, J' of the K candidates) becomes measures ``j_mean_k1`` … ``j_mean_kK``.
     (Formatted here rather than by ``csv.writer``: 356,000 rows at 1,000 trials of Figure 8
-    took 0.55-0.6 s there, 0.24 s here.)
+    took 0.55-0.6 s there, 0.26 s here.)
     """
     yield ",".join(COLUMNS) + "\r\n"
     for name, entry in results.items():

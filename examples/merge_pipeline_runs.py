@@ -61,7 +61,7 @@ def parse_args(argv=None) -> Args:
 
 if __name__ == "__main__":
     parse_args()  # --help and bad flags answer here, before matplotlib loads
-    collector_off_for_imports()  # examples/_process.py
+    collector_off_for_imports(torch_follows=False)  # examples/_process.py (no torch here)
 
 import _pipeline_report as report  # noqa: E402
 
