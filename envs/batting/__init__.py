@@ -8,6 +8,9 @@ One concept a file:
   time);
 * :mod:`~envs.batting.impact`: the integration scheme ("coarse swing, fine impact window"), the
   look-ahead for the end of the first contact and the launch;
+* :mod:`~envs.batting.swing`: the contact-free coarse swing as batched tensor dynamics, checked
+  against MuJoCo, with the arm's coefficients read from the model in
+  :mod:`~envs.batting.arm_model`;
 * :mod:`~envs.batting.flight`: the ball's closed-form flight and its carry;
 * :mod:`~envs.batting.env`: :class:`BattingEnv`, the batched TorchRL env that draws the noise;
 * :mod:`~envs.batting.gym_env`: :class:`BattingGymEnv`, one arm as a Gymnasium env (registered
@@ -24,6 +27,7 @@ Example:
     torch.Size([2, 3, 1])
 """
 
+from .audit import PhysicsAudit as PhysicsAudit  # (a re-export)
 from .constants import (
     ACTION_TORQUES,
     COARSE_DT,

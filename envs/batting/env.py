@@ -50,14 +50,16 @@ class BattingEnv(EnvBase):
     Args:
         batch_size: number of parallel arms E (an int or a 1-d shape).
         max_steps: control steps per episode (10 in the paper).
-        device: device of the env's tensors (CPU by default); physics runs on the CPU.
+        device: device of the env's tensors (CPU by default) and of the tensor swing; MuJoCo's
+            physics (the impact window) runs on the CPU.
         seed: key of the noise stream; ``None`` draws a fresh one (not from global state).
         noise_variance: variance of the torque noise per joint ((N m)^2).
         end_at_hit: end the episode (``terminated``) at the step of the first ball-bat
             contact: the ball is gone, nothing after it can earn a reward. Off by default
             (the paper's episodes run all ``max_steps`` steps).
         **sim_options: keywords of :class:`BattingSimulator`: the fidelity knobs ``scheme``,
-            ``coarse_dt``, ``fine_dt``, ``margin``, ``coarse_integrator``, ``nthread``, and
+            ``coarse_dt``, ``fine_dt``, ``margin``, ``coarse_integrator``, ``swing``
+            (``"tensor"``, the default, or ``"mujoco"``, the engine of record), ``nthread``, and
             ``hook``, a :class:`PhysicsHook` observing the env's physics (instrumentation; the
             numbers do not depend on it).
 
@@ -97,6 +99,7 @@ class BattingEnv(EnvBase):
         self.max_steps = max_steps
         self.end_at_hit = bool(end_at_hit)
         self.noise_std = math.sqrt(float(noise_variance))  # (N m)
+        sim_options.setdefault("device", self.device)
         self.sim = BattingSimulator(num_envs=batch_size[0], **sim_options)
         self._steps = np.zeros(batch_size[0], dtype=np.int64)
         self.last_torque = np.zeros((batch_size[0], 2))  # (N m) applied in the last step

@@ -45,6 +45,9 @@ class BattingGymEnv(gymnasium.Env):
     ) -> None:
         self.max_steps = check_positive_int(max_steps, "max_steps")
         self.noise_std = math.sqrt(float(noise_variance))  # (N m)
+        # one arm stepped alone: MuJoCo's swing (tens of microseconds a control step) beats the
+        # tensor swing, whose fixed cost per call pays off only over many arms at once
+        sim_kwargs.setdefault("swing", "mujoco")
         self.sim = BattingSimulator(num_envs=1, nthread=1, **sim_kwargs)
         bound = np.array(OBSERVATION_BOUND, dtype=np.float32)
         self.observation_space = gymnasium.spaces.Box(-bound, bound, (4,), np.float32)

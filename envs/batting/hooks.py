@@ -3,7 +3,7 @@
 A :class:`PhysicsHook` given to :class:`~envs.batting.BattingSimulator` (or
 :class:`~envs.batting.BattingEnv`) is called around every physics rollout of a control step.
 The simulator's numbers do not depend on it: a hook only reads. What instruments a run (the
-physics audit of ``examples/_physics_audit.py``, the per-step arm trace of
+physics audit of ``envs/batting/audit.py``, the per-step arm trace of
 ``examples/plot_batting_episode.py``) lives with the program that needs it, not in the env.
 """
 
@@ -44,6 +44,7 @@ class PhysicsHook:
 
         ``kind`` is ``"coarse"`` or ``"fine"``; ``states`` [E, nstate] are all simulations'
         integration states before the call, ``torque`` [len(ids), 2] (N m) the torques applied.
+        The coarse swing is announced alike whether MuJoCo or the tensor swing computes it.
         """
 
     def on_step_start(self, sim, states: np.ndarray | None) -> None:

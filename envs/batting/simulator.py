@@ -3,7 +3,9 @@
 E simulations of ``assets/batting.xml`` stepped in MuJoCo's native thread pool
 (:class:`mujoco.batch.Batch`), one control step (75 ms, the paper's 10 x 7.5 ms) at a time, with
 the integration scheme of :mod:`envs.batting.impact` and the closed-form flight of
-:mod:`envs.batting.flight`. Noise is not drawn here (the envs draw it).
+:mod:`envs.batting.flight`. The contact-free coarse swing runs either in MuJoCo or, by default,
+as batched tensor dynamics checked against it (:mod:`envs.batting.swing`); the impact window is
+always MuJoCo's. Noise is not drawn here (the envs draw it).
 
 MuJoCo stops a simulation whose accelerations blow up (its warning counters rise) instead of
 stepping it: the simulator checks the counters after every call and raises ``RuntimeError``.
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import torch
 from mujoco.batch import Batch
 
 from .constants import (
@@ -32,6 +35,7 @@ from .constants import (
 )
 from .hooks import PhysicsHook
 from .impact import ImpactWindow
+from .swing import TensorSwing, state_offsets
 
 __all__ = ["BattingSimulator"]
 
@@ -83,6 +87,10 @@ class BattingSimulator(ImpactWindow):
         margin: predicted bat-ball gap (m) below which a coarse interval is re-integrated at
             ``fine_dt``; in (0, 1).
         coarse_integrator: ``"rk4"`` or ``"euler"``, the integrator of the coarse steps.
+        swing: ``"tensor"`` (the coarse swing of all simulations as batched tensor dynamics,
+            :mod:`envs.batting.swing`; RK4 only) or ``"mujoco"`` (MuJoCo's own coarse
+            rollout, the engine of record). The impact window is MuJoCo's either way.
+        device: where the tensor swing runs (CPU by default).
         nthread: threads of MuJoCo's pool; ``None``: ``min(E, os.cpu_count())``.
         xml_path: the MJCF file.
         hook: a :class:`~envs.batting.PhysicsHook` observing every physics rollout (e.g. a
@@ -105,6 +113,8 @@ class BattingSimulator(ImpactWindow):
         fine_dt: float = FINE_DT,
         margin: float = MARGIN,
         coarse_integrator: str = COARSE_INTEGRATOR,
+        swing: str = "tensor",
+        device: torch.device | str | None = None,
         nthread: int | None = None,
         xml_path: str | Path = XML_PATH,
         hook: PhysicsHook | None = None,
@@ -136,6 +146,14 @@ class BattingSimulator(ImpactWindow):
         # resolving its pin or ground contact at every RK4 stage (about 40 % of a step's cost):
         # contacts and sensors are off and the ball's weight is compensated.
         self.coarse_model.opt.disableflags |= _COARSE_OFF
+        if swing not in ("tensor", "mujoco"):
+            raise ValueError(f"swing must be 'tensor' or 'mujoco', got {swing!r}")
+        if swing == "tensor" and coarse_integrator != "rk4":
+            raise ValueError(f"swing='tensor' reproduces RK4, got {coarse_integrator=!r}")
+        self.swing = swing
+        self.tensor_swing = None
+        if swing == "tensor" and scheme == "adaptive":
+            self.tensor_swing = TensorSwing(self.coarse_model, device=device)
         self.fine_model = mujoco.MjModel.from_xml_path(str(xml_path))
         self.fine_model.opt.timestep = self.fine_dt
         model = self.fine_model
@@ -182,8 +200,9 @@ class BattingSimulator(ImpactWindow):
         self.main = Batch(self.coarse_model, nsim=num_envs, nthread=nthread)
         self.fine = Batch(self.fine_model, nsim=num_envs, nthread=nthread)
         self._nstate = self.main.nstate
-        self._qpos_adr, _ = self._state_slice(mujoco.mjtState.mjSTATE_QPOS)
-        self._qvel_adr, _ = self._state_slice(mujoco.mjtState.mjSTATE_QVEL)
+        offsets = state_offsets(self.coarse_model)
+        self._qpos_adr = offsets[mujoco.mjtState.mjSTATE_QPOS.value]
+        self._qvel_adr = offsets[mujoco.mjtState.mjSTATE_QVEL.value]
         self._initial_state = self._settled_initial_state()
 
         self.hit = np.zeros(num_envs, dtype=bool)  # the bat has touched the ball
@@ -199,19 +218,6 @@ class BattingSimulator(ImpactWindow):
         return self.hook is not None and self.hook.wants_qpos
 
     # -- physics queries ----------------------------------------------------------------------
-
-    def _state_slice(self, component: mujoco.mjtState) -> tuple[int, int]:
-        """Offset and size of one component inside a state row."""
-        offset = 0
-        for bit in range(mujoco.mjtState.mjNSTATE.value):
-            flag = 1 << bit
-            if not flag & _INTEGRATION_STATE.value:
-                continue
-            size = mujoco.mj_stateSize(self.coarse_model, flag)
-            if flag == component.value:
-                return offset, size
-            offset += size
-        raise ValueError(f"state component {component} is not in the integration state")
 
     def _settled_initial_state(self) -> np.ndarray:
         """Integration state row of (pi/4, 0, 0, 0) with the ball at rest on its pin."""
@@ -326,14 +332,11 @@ class BattingSimulator(ImpactWindow):
             raise ValueError(f"torque must have shape ({self.num_envs}, 2), got {torque.shape}")
         if not np.isfinite(torque).all():
             raise ValueError("torque must be finite")
-        everyone = np.arange(self.num_envs)
         if self.scheme == "uniform":
             states = None
             fine = np.ones((self.num_envs, self.n_coarse), dtype=bool)
         else:
-            start = self.main.state.copy()
-            out = self._run(self.main, everyone, torque, self.n_coarse, states=True)
-            states = np.concatenate([start[:, None], out[_INTEGRATION_STATE.value]], axis=1)
+            states = self._swing(torque)
             fine = self._near_intervals(states)
         if self.hook is not None:
             self.hook.on_step_start(self, states)
@@ -347,6 +350,27 @@ class BattingSimulator(ImpactWindow):
         if self.hook is not None:
             self.hook.on_step_end(self)
         return self.observation(), carry, first_hit
+
+    def _swing(self, torque: np.ndarray) -> np.ndarray:
+        """The coarse swing of every simulation through the control step; the main batch is
+        left at its end. Returns the states [E, n_coarse + 1, nstate] at the interval
+        boundaries (index 0: the start)."""
+        everyone = np.arange(self.num_envs)
+        if self.tensor_swing is None:
+            start = self.main.state.copy()
+            out = self._run(self.main, everyone, torque, self.n_coarse, states=True)
+            return np.concatenate([start[:, None], out[_INTEGRATION_STATE.value]], axis=1)
+        if self.hook is not None:
+            self.hook.on_rollout("coarse", self.main.state, everyone, torque, self.n_coarse)
+        states, bad = self.tensor_swing.rollout(self.main.state, torque, self.n_coarse)
+        if bad.any():
+            raise RuntimeError(
+                f"the tensor swing diverged like an unstable MuJoCo simulation (NaN or huge "
+                f"QACC) in envs {np.flatnonzero(bad).tolist()[:10]}"
+            )
+        self.main.state[:] = states[:, -1]
+        self.physics_steps += self.n_coarse
+        return states
 
     def bat_ball_gap(self, phi1: np.ndarray, phi2: np.ndarray, ball: np.ndarray) -> np.ndarray:
         """Signed bat-ball distance (m) at arm angles ``phi1``, ``phi2`` [...] and ball centre

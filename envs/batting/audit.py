@@ -1,11 +1,12 @@
 """The physics audit of a batting run: its physics steps counted, a sample kept for replay.
 
-A :class:`~envs.batting.PhysicsHook` given to the run's environments
-(``BattingEnv(hook=PhysicsAudit(...))``). ``examples/train_batting.py`` reports the counts;
-``benchmarks/_physics_floor.py`` replays the sample to time bare MuJoCo on the same steps.
+A :class:`~envs.batting.hooks.PhysicsHook` given to the run's environments
+(``BattingEnv(hook=PhysicsAudit(...))``): it only reads, so the numbers of a run do not depend
+on it. ``examples/train_batting.py`` reports the counts; ``benchmarks/_physics_floor.py``
+replays the sample to time bare MuJoCo on the same steps.
 
 Example:
-    >>> from envs.batting import BattingEnv
+    >>> from envs.batting import BattingEnv, PhysicsAudit
     >>> audit = PhysicsAudit(fraction=0.5, seed=0)
     >>> _ = BattingEnv(batch_size=2, seed=0, hook=audit).rollout(2)
     >>> audit.steps["coarse"] > 0
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.batting import PhysicsHook
+from .hooks import PhysicsHook
 
 __all__ = ["PhysicsAudit"]
 
