@@ -1,7 +1,7 @@
 """The physics floor of a batting run: bare MuJoCo replaying the run's own physics steps.
 
 A run's environments count their physics steps, and sample some of their rollout calls, into a
-:class:`PhysicsAudit` (start state, torques, number of steps; ``examples/_physics_audit.py``, a
+:class:`PhysicsAudit` (start state, torques, number of steps; ``envs/batting/audit.py``, a
 hook of the env). Replaying the sampled rollouts with nothing around them, and scaling by the
 counted steps, estimates how long bare MuJoCo needs for the run's physics. The states matter:
 steps in which the arm presses on a joint limit or the bat touches the ball cost more solver
@@ -14,18 +14,13 @@ the floor the ratios use), and a plain ``mj_step`` loop on one thread.
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import mujoco
 import numpy as np
 from mujoco.batch import Batch
 
-from envs.batting import BattingSimulator
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from _physics_audit import PhysicsAudit  # noqa: E402
+from envs.batting import BattingSimulator, PhysicsAudit
 
 INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 MAX_BATCH = 4096  # simulations per replayed Batch (bounds its memory)

@@ -36,12 +36,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from _batting_basis import make_basis  # noqa: E402
-from _batting_options import parse_widths  # noqa: E402
 from batting_reference import reference_optimum  # noqa: E402
 
-from envs.batting import MAX_STEPS, N_ACTIONS, BattingEnv  # noqa: E402
-from torch_api.collection import collect_episodes
+from envs.batting import BASIS_TAU, MAX_STEPS, N_ACTIONS, BattingEnv, basis_centers  # noqa: E402
+from torch_api.collection import collect_episodes  # noqa: E402
+from torch_api.core.basis import GaussianActionBasis  # noqa: E402
 from torch_api.core.design import build_design  # noqa: E402
 from torch_api.core.psi import PsiHat  # noqa: E402
 from torch_api.core.solve import DEFAULT_LAMBDA, weighted_ridge  # noqa: E402
@@ -187,8 +186,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--basis-widths",
-        default="",
-        help="beyond the paper: kernel widths per state dimension w1,w2,w3,w4 (default: the "
+        type=float,
+        nargs=4,
+        default=None,
+        metavar="W",
+        help="beyond the paper: kernel widths per state dimension w1 w2 w3 w4 (default: the "
         "paper's τ = 3π/2 for all)",
     )
     parser.add_argument(
@@ -209,7 +211,12 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     started = time.perf_counter()
     try:
-        basis = make_basis(parse_widths(args.basis_widths))
+        basis = GaussianActionBasis(
+            centers=basis_centers(),
+            tau=BASIS_TAU if args.basis_widths is None else 1.0,
+            widths=args.basis_widths,
+            num_actions=N_ACTIONS,
+        )
     except ValueError as error:
         parser.error(str(error))
     psi = PsiHat(basis=basis, gamma=1.0, mode="single")

@@ -29,12 +29,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+import tyro
 from _timing import machine_info, median_times
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import chain_walk_api  # noqa: E402
 import train_batting  # noqa: E402
-from _cli import dataclass_parser, field  # noqa: E402
 
 from torch_api.core.solve import j_criterion, weighted_ridge  # noqa: E402
 
@@ -43,16 +43,22 @@ from torch_api.core.solve import j_criterion, weighted_ridge  # noqa: E402
 class Args:
     """Command-line arguments of the device benchmark."""
 
-    fig8_trials: int = field(1000, help="T of the chain-walk Figure 8 run (the paper: 1000)")
-    batting_trials: int = field(16, help="T of the batting run (decreasing schedule, AL and PL)")
-    batting_iterations: int = field(7, help="iterations of the batting run")
-    algebra_trials: int = field(64, help="T of the algebra-alone table (Z = 5, K = 4, B = 110)")
-    algebra_samples: int = field(500, help="n, samples per set in the algebra-alone table")
-    threads: int = field(
-        1, help="torch intra-op threads for the experiments (1: fastest for their small tensors)"
-    )
-    quick: bool = field(False, help="tiny sizes, for a smoke test")
-    out: str = field("", help="write the numbers as JSON to this path")
+    fig8_trials: int = 1000
+    """T of the chain-walk Figure 8 run (the paper: 1000)"""
+    batting_trials: int = 16
+    """T of the batting run (decreasing schedule, AL and PL)"""
+    batting_iterations: int = 7
+    """iterations of the batting run"""
+    algebra_trials: int = 64
+    """T of the algebra-alone table (Z = 5, K = 4, B = 110)"""
+    algebra_samples: int = 500
+    """n, samples per set in the algebra-alone table"""
+    threads: int = 1
+    """torch intra-op threads for the experiments (1: fastest for their small tensors)"""
+    quick: bool = False
+    """tiny sizes, for a smoke test"""
+    out: str = ""
+    """write the numbers as JSON to this path"""
 
 
 def devices() -> list[str]:
@@ -206,8 +212,7 @@ def print_experiment(title: str, rows: list[dict]) -> None:
 
 
 def main(argv=None) -> dict:
-    parser = dataclass_parser(Args, __doc__.split("\n")[0])
-    args = Args(**vars(parser.parse_args(argv)))
+    args = tyro.cli(Args, args=argv, description=__doc__.split("\n")[0])
     if "cuda" not in devices():
         print("no CUDA GPU here: CPU rows only")
     else:

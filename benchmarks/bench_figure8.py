@@ -6,7 +6,7 @@ paper's sizes otherwise) in a fresh process and reports:
 - ``wall``: the whole command, start-up included; ``compute``: the experiment's own time (the
   ``wall_seconds`` of its JSON); ``peak RSS`` of its largest process; for each ``--backend``
   (``processes``, the CLI's default: a forked worker per core; ``local``: one process);
-- ``start-up``: a process that only imports what the CLI imports (measured once);
+- ``start-up``: the CLI up to its parsed arguments, ``--help`` (its imports), then exit;
 - the floors of the same work in this process: ``rng`` — drawing the run's count of 32-bit
   words from :class:`counter_rng.CounterStreams` in calls of the run's mean draw size (the
   count comes from an instrumented in-process run of a few trials: every draw is per trial);
@@ -20,7 +20,7 @@ Run::
     python benchmarks/bench_figure8.py --trials 20 100     # a quick look
     python benchmarks/bench_figure8.py --threads 2         # the CLI's and the floors' threads
     python benchmarks/bench_figure8.py --backend local     # one process only
-    python benchmarks/bench_figure8.py --trials 1000 --freed-memory retain return --repeats 3
+    python benchmarks/bench_figure8.py --trials 1000 --repeats 3
 """
 
 from __future__ import annotations
@@ -43,13 +43,10 @@ SCHEDULES = {"decreasing": (5, 5, 3, 3, 3, 1, 1), "fixed": (3,) * 7}
 Z, K, N = 5, 4, 10  # repeats, candidates, steps (section 4.2)
 
 
-def run_cli(
-    trials: int, threads: int, out: Path, backend: str, chunk_trials: int, freed_memory: str
-) -> dict:
+def run_cli(trials: int, threads: int, out: Path, backend: str, chunk_trials: int) -> dict:
     """Wall time, the experiment's own time and the peak RSS (of its largest process) of one
     run of the CLI, its trials in chunks of at most ``chunk_trials``."""
     command = [sys.executable, str(CLI), "--trials", str(trials), "--threads", str(threads)]
-    command += ["--freed-memory", freed_memory]
     command += ["--out-dir", str(out), "--overwrite", "--backend", backend]
     command += ["--chunks", str(-(-trials // chunk_trials))]
     wrapper = (
@@ -68,22 +65,13 @@ def run_cli(
     return {"wall_s": float(wall), "compute_s": payload["wall_seconds"], "rss_mb": int(rss) / 1024}
 
 
-def startup_seconds(repeats: int = 3, collector_off: bool = True) -> float:
-    """Median time of a process that imports what the CLI imports, and nothing else, then
-    exits; ``collector_off``: as the CLI does it (examples/_process.py: the garbage collector
-    off during the imports, what they made frozen after, torch's compiler not loaded), else
-    with Python's defaults."""
-    imports = (
-        f"import sys; sys.path.insert(0, {str(CLI.parent)!r}); import _process;"
-        f"{'_process.collector_off_for_imports();' if collector_off else ''}"
-        "import _harness, _figures, torch;"
-        "import envs.chain_walk, envs.chain_walk.exact, torch_api.policies;"
-        f"{'_process.freeze_imported_objects()' if collector_off else ''}"
-    )
+def startup_seconds(repeats: int = 3) -> float:
+    """Median time of the CLI started with ``--help``: its imports and its parsed arguments,
+    then exit (what every run pays before its work)."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-c", imports], check=True)
+        subprocess.run([sys.executable, str(CLI), "--help"], check=True, capture_output=True)
         times.append(time.perf_counter() - start)
     return statistics.median(times)
 
@@ -176,16 +164,7 @@ def main() -> None:
     )
     parser.add_argument("--startup-repeats", type=int, default=3)
     parser.add_argument(
-        "--quick",
-        action="store_true",
-        help="a smoke run: start-up measured only as the CLIs start (not with Python's defaults)",
-    )
-    parser.add_argument(
-        "--freed-memory",
-        nargs="+",
-        default=["retain"],
-        choices=("retain", "return"),
-        help="the CLI's --freed-memory, each measured (retain: its default)",
+        "--quick", action="store_true", help="a smoke run: the start-up measured once"
     )
     parser.add_argument(
         "--repeats", type=int, default=1, help="runs of each configuration (medians shown)"
@@ -197,53 +176,47 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(machine_info())
-    startup = startup_seconds(args.startup_repeats)
-    defaults = (
-        "not measured (--quick)"
-        if args.quick
-        else f"{startup_seconds(args.startup_repeats, collector_off=False):.2f} s"
-    )
+    startup_repeats = 1 if args.quick else args.startup_repeats
+    startup = startup_seconds(startup_repeats)
     print(
-        f"start-up (the CLI's imports, then exit): {startup:.2f} s as the CLIs start (collector "
-        f"off and frozen, compiler deferred), {defaults} with Python's defaults (medians of "
-        f"{args.startup_repeats})"
+        f"start-up (the CLI's imports and arguments, --help, then exit): {startup:.2f} s "
+        f"(median of {startup_repeats})"
     )
     words, calls = count_draws(args.count_trials)
     rows = []
     print(
-        "| trials | backend | freed memory | wall s | compute s | start-up s | rng floor s "
-        "| algebra floor s | peak RSS MB |"
+        "| trials | backend | wall s | compute s | start-up s | rng floor s | algebra floor s "
+        "| peak RSS MB |"
     )
-    print("|---:|---|---|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|")
     for trials in args.trials:
-        configs = [(b, f) for b in args.backend for f in args.freed_memory]
-        runs = {config: [] for config in configs}
-        for _ in range(args.repeats):  # the configurations side by side, in turn
-            for backend, freed in configs:
+        runs = {backend: [] for backend in args.backend}
+        for _ in range(args.repeats):  # the backends side by side, in turn
+            for backend in args.backend:
                 with tempfile.TemporaryDirectory() as out:
-                    runs[backend, freed].append(
-                        run_cli(trials, args.threads, Path(out), backend, args.chunk_trials, freed)
+                    runs[backend].append(
+                        run_cli(trials, args.threads, Path(out), backend, args.chunk_trials)
                     )
         floors = {  # after the CLI's runs: what the floors hold does not shrink their memory check
             "rng_floor_s": rng_floor(words * trials // args.count_trials, calls),
             "algebra_floor_s": algebra_floor(trials),
         }
-        for (backend, freed), done in runs.items():
+        for backend, done in runs.items():
             run = {key: statistics.median(r[key] for r in done) for key in done[0]}
-            row = {"trials": trials, "backend": backend, "freed_memory": freed, **run}
+            row = {"trials": trials, "backend": backend, **run}
             row.update(startup_s=startup, repeats=args.repeats, **floors)
             rows.append(row)
             print(
-                f"| {trials:,} | {backend} | {freed} | {row['wall_s']:.1f} | "
-                f"{row['compute_s']:.1f} | {startup:.1f} | {row['rng_floor_s']:.2f} | "
-                f"{row['algebra_floor_s']:.2f} | {row['rss_mb']:.0f} |"
+                f"| {trials:,} | {backend} | {row['wall_s']:.1f} | {row['compute_s']:.1f} | "
+                f"{startup:.1f} | {row['rng_floor_s']:.2f} | {row['algebra_floor_s']:.2f} | "
+                f"{row['rss_mb']:.0f} |"
             )
-    for backend, freed in configs:
-        mine = [r for r in rows if (r["backend"], r["freed_memory"]) == (backend, freed)]
+    for backend in args.backend:
+        mine = [r for r in rows if r["backend"] == backend]
         if len(mine) > 1:
             first, last = mine[0], mine[-1]
             print(
-                f"{backend}, {freed}: wall ratio T={last['trials']} / T={first['trials']}: "
+                f"{backend}: wall ratio T={last['trials']} / T={first['trials']}: "
                 f"{last['wall_s'] / first['wall_s']:.2f}"
             )
     if args.out is not None:

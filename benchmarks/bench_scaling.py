@@ -31,7 +31,7 @@ from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.core.solve import j_criterion, weighted_ridge
 from torch_api.loop.iteration import ActivePolicyIteration
-from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 
 DECREASING = (5, 5, 3, 3, 3, 1, 1)  # the chain walk's 'decreasing' schedule (section 4.2)
 
@@ -56,17 +56,15 @@ def growth_order(sizes: list[float], seconds: list[float]) -> float:
 def chain_walk_run(trials: int) -> float:
     """Wall seconds of one active run of ``trials`` batched chain-walk trials."""
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    api = ActivePolicyIteration(
-        env=lambda rows: ChainWalkEnv(batch_size=rows),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=DECREASING,
         num_steps=10,
         gamma=GAMMA,
-        selector=SamplingPolicySelector(),
         psi_mode="grouped",
         num_trials=trials,
         keep_reward_free=False,
-    )
+    )  # active, Z = 5
+    api = ActivePolicyIteration(spec, env=lambda rows: ChainWalkEnv(batch_size=rows), basis=basis)
     start = time.perf_counter()
     api.run()
     return time.perf_counter() - start

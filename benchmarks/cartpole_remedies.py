@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -34,13 +33,11 @@ import gymnasium as gym
 import torch
 from torchrl.envs import GymWrapper, ObservationNorm, TransformedEnv
 
-from torch_api import ActivePolicyIteration, GaussianActionBasis, SamplingPolicySelector
+from torch_api import ActivePolicyIteration, GaussianActionBasis, RunSpec
 from torch_api.collection import collect_episodes
+from torch_api.core.quadratic_basis import QuadraticActionBasis
 from torch_api.data import REWARD_KEY
 from torch_api.policies import LinearQPolicy
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from _pipeline_envs import QuadraticActionBasis  # noqa: E402
 
 OBS_SCALE = (2.4, 2.0, 0.21, 2.0)  # (m, m/s, rad, rad/s): normalised observation = s / scale
 GOOD = 475  # a greedy return at least this is "balanced" (of TEST_STEPS)
@@ -61,11 +58,11 @@ REMEDIES = {  # name: what differs from BASE
     "LSTD AL iwcv": {"active": True, "flattening": "iwcv"},
     "LSTD PL λ=0.1": {"lam": 0.1},
     "LSTD PL 10 episodes": {"schedule": (10,) * 6},
-    "LSTD PL ε=0.15 fixed": {"epsilon_schedule": "fixed"},
+    "LSTD PL ε=0.15 fixed": {"epsilon_decay": "constant"},
     "LSTD PL softmax β=0.5": {"improvement": "softmax", "beta": 0.5},
     "LSTD PL ν=0": {"flattening": 0.0},
     "LSTD PL iwcv, 10 episodes": {"flattening": "iwcv", "schedule": (10,) * 6},
-    "LSTD PL iwcv, ε=0.15 fixed": {"flattening": "iwcv", "epsilon_schedule": "fixed"},
+    "LSTD PL iwcv, ε=0.15 fixed": {"flattening": "iwcv", "epsilon_decay": "constant"},
     # the showcase's remedies (examples/torchrl_pipeline.py; run with --iterations 8)
     "LSTD PL ν=0 quadratic": {"flattening": 0.0, "basis": "quadratic"},
     "LSTD PL ν=0, M_1=80": {"flattening": 0.0, "schedule": FIRST_80},
@@ -113,11 +110,6 @@ REMEDIES = {  # name: what differs from BASE
 }  # fmt: skip
 
 
-def fixed_epsilon(iteration: int) -> float:
-    """ε_l = 0.15 in every iteration (no decay: no jump towards the greedy policy)."""
-    return 0.15
-
-
 def make_env(rows: int) -> TransformedEnv:
     """``rows`` CartPoles as one TorchRL env ``[rows]``, one-hot actions, unit-scale states."""
     vector = gym.vector.SyncVectorEnv(
@@ -157,27 +149,32 @@ def make_evaluator(trials: int, episodes: int):
 def run(name: str, args) -> dict:
     setting = BASE | REMEDIES[name]
     options = {}
-    if setting.get("epsilon_schedule") == "fixed":
-        options["epsilon_schedule"] = fixed_epsilon
+    if setting.get("epsilon_decay"):  # ε_l = 0.15 in every iteration: no jump towards greedy
+        options["epsilon_decay"] = setting["epsilon_decay"]
     if setting.get("improvement"):
         options |= {"improvement": setting["improvement"], "beta": setting["beta"]}
+    if setting["active"]:
+        options["num_repeats"] = args.repeats
     schedule = setting["schedule"][: args.iterations]
-    api = ActivePolicyIteration(
-        env=make_env,
-        basis=make_basis(setting.get("basis", "grid")),
+    spec = RunSpec.of(
         schedule=schedule,
         num_steps=args.steps,
         gamma=setting.get("gamma", 0.95),
-        selector=SamplingPolicySelector(num_repeats=args.repeats) if setting["active"] else None,
+        mode="active" if setting["active"] else "passive",
         lam=setting["lam"],
         psi_mode="single",
         fit=setting["fit"],
         flattening=setting["flattening"],
-        evaluate=make_evaluator(args.trials, args.test_episodes),
         num_trials=args.trials,
         trial_seeds=list(range(args.first_seed, args.first_seed + args.trials)),
         keep_reward_free=False,
         **options,
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=make_env,
+        basis=make_basis(setting.get("basis", "grid")),
+        evaluate=make_evaluator(args.trials, args.test_episodes),
     )
     started = time.perf_counter()
     with warnings.catch_warnings():

@@ -1,351 +1,148 @@
-"""The attacks on a run's store at its edges, counted: tries and outcomes (docs/durable_runs.md).
+"""The attacks on a run's store and on the examples' runs, counted (docs/durable_runs.md).
 
-Every try is a real process (forked from this one, torch loaded as in a run) and real files:
+Every try is a real process and real files; the table counts, per attack, the committed
+rewards lost or bought twice and the silent damages (a damaged run resumed or read as if it
+were whole). Both must be 0.
 
+* ``kill`` (``--kills N``): ``examples/chain_walk_api.py`` SIGKILLed (a quarter of the tries the
+  moment its first store appears, the others at a random moment of the run), then
+  ``--resume``. The rewarded episodes committed when it died (counted on a copy of its
+  stores, the commit in flight rolled back as SQLite does) plus those the resumed process
+  buys must be the schedule's, and the numbers those of an uninterrupted run;
+* ``signal`` (``--signals N``): the same with SIGINT and SIGTERM (alternately): the commit in
+  flight completes, the script ends with its one line (exit 130/143). A signal that comes
+  once the results are written (as the process ends) is counted apart, as is one that comes
+  after the process ended;
+* ``example damage`` (``--example-damages N``): a SIGKILLed example's store files, one file
+  damaged (removed, cut, a bit flipped), then ``--resume``: refused in one line (exit 1,
+  nothing bought, the files left as they were), or it finishes with the uninterrupted numbers
+  and buys no committed reward again;
+* ``damage`` (``--damages N``): a store whose writer committed 5 slices and was SIGKILLed
+  between commits, or inside a 6th slice whose pages had spilled into the database (its
+  journal hot); one of its files (the database, its journal, its counter) removed, cut at a
+  random length, one random bit flipped, or replaced by its copy of 2 commits before; then a
+  reader (``RunStore.read``) and a writer (``resume=True``) must give back the 5 committed
+  slices, value for value, or refuse;
 * ``creation``: SIGKILL, or SIGTERM turned into the examples' interrupt, as SQLite starts each
   statement of a store's creation in turn; SIGKILL before each file-system step of it (open,
   write, fsync, rename); a file-size limit (``ulimit -f``) that makes a write of the creation
   fail; then ``resume=True`` must open the run (empty);
-* ``wal``: a writer SIGKILLed after 6 commits (its rows in ``run.db-wal``); the log cut at a
-  random length or one random bit flipped in it; then ``resume=True`` must give every committed
-  row back or refuse saying rows were lost;
-* ``signal``: SIGTERM while a commit is open, sent from inside the transaction and at random
-  moments from outside into a writer committing in a loop (with a thread that blocks no
-  signal, as ``import torch`` starts); every commit that began must stand;
-* ``cli`` (``--cli N``): ``examples/chain_walk_api.py`` SIGTERMed the moment its first store
-  appears, then ``--resume`` must finish (exit 0).
+* ``commit signal`` (``--commit-signals N``): SIGTERM while a commit is open, sent from inside
+  the transaction and at random moments from outside into a writer committing in a loop
+  (with a thread that blocks no signal, as ``import torch`` starts); every commit that began
+  must stand.
 
-    python benchmarks/durability_attacks.py --tries 200 --cli 16
+    nice python benchmarks/durability_attacks.py --kills 40 --signals 40 --damages 200 \\
+        --out durability_attacks.json
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
 import json
-import os
 import random
-import resource
-import shutil
-import signal
-import sqlite3
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "examples")]
+sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
 import torch  # noqa: E402
-from _durable import Interrupted, raise_on_signals  # noqa: E402
-from tensordict import TensorDict  # noqa: E402
+from _durability_examples import EXAMPLE, example, reference_run  # noqa: E402,F401
+from _durability_store import (  # noqa: E402,F401  (the attacks, also used by the tests)
+    COMMITS,
+    CONFIG,
+    CREATED,
+    Tally,
+    commit_signals,
+    creation,
+    damage,
+    episodes,
+    in_child,
+    kill_at_file_step,
+    killed_writer,
+    signal_inside_a_commit,
+    stop_at_statement,
+)
+from _timing import machine_info  # noqa: E402
 
-from torch_api.runs import store_files  # noqa: E402
-from torch_api.runs.store import CorruptRunError, RunStore, StoreError  # noqa: E402
-
-CONFIG = {"N": 1}
-
-
-CREATED = 10  # a child's exit status: the creation ended before the statement to stop at
-
-
-def in_child(body) -> int:
-    """``body()`` in a forked process; its exit status (negative: the signal that ended it;
-    128 + the signal: the examples' interrupt; 1: a store error; 3: another error)."""
-    pid = os.fork()
-    if pid == 0:  # the child: never returns into the caller
-        code = 0
-        try:
-            body()
-        except Interrupted as interrupt:
-            code = 128 + interrupt.signum
-        except StoreError:
-            code = 1
-        except BaseException:  # noqa: BLE001
-            code = 3
-        os._exit(code)
-    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+EXAMPLE_ATTACKS = {"kill": "kills", "signal": "signals", "example-damage": "example_damages"}
+"""The attacks on the examples and the flag that says how many tries each gets."""
 
 
-def stop_at_statement(path: Path, k: int, signum: int):
-    """A child's body: create a store at ``path``, sending itself ``signum`` as SQLite starts
-    its k-th statement, taken as that statement returns (SIGTERM: the examples' interrupt);
-    exits :data:`CREATED` if the creation has fewer statements."""
-
-    def body() -> None:
-        real, seen, mask = sqlite3.connect, [0], []
-
-        class Connection(sqlite3.Connection):
-            def execute(self, *args):
-                try:
-                    return super().execute(*args)
-                finally:  # the signal sent while SQLite ran, taken as it returns (if unmasked)
-                    if mask:
-                        signal.pthread_sigmask(signal.SIG_SETMASK, mask.pop())
-
-        def connect(*args, **kwargs):
-            db = real(*args, factory=Connection, **kwargs)
-
-            def trace(sql):
-                seen[0] += 1
-                if seen[0] == k:  # (a handler run here, in the callback, would be swallowed)
-                    mask.append(signal.pthread_sigmask(signal.SIG_BLOCK, {signum}))
-                    os.kill(os.getpid(), signum)
-
-            db.set_trace_callback(trace)
-            return db
-
-        sqlite3.connect = connect
-        with raise_on_signals():
-            RunStore(path, config=CONFIG).close()
-        if seen[0] < k:
-            os._exit(CREATED)
-
-    return body
-
-
-def kill_at_file_step(path: Path, k: int):
-    """A child's body: create a store at ``path``, SIGKILLed before the k-th call into ``os``
-    of :mod:`torch_api.runs.store_files` (open, write, fsync, rename, ...); exits :data:`CREATED`
-    if the creation has fewer."""
-
-    class Steps:
-        def __init__(self) -> None:
-            self.seen = 0
-
-        def __getattr__(self, name):
-            attr = getattr(os, name)
-            if not callable(attr):
-                return attr
-
-            def step(*args, **kwargs):
-                self.seen += 1
-                if self.seen == k:
-                    os.kill(os.getpid(), signal.SIGKILL)
-                return attr(*args, **kwargs)
-
-            return step
-
-    def body() -> None:
-        steps = store_files.os = Steps()
-        RunStore(path, config=CONFIG).close()
-        if steps.seen < k:
-            os._exit(CREATED)
-
-    return body
-
-
-def killed_writer(path: Path, commits: int) -> None:
-    """A store at ``path`` whose writer put ``commits`` slices and was SIGKILLed: its rows in
-    ``PATH-wal``."""
-
-    def body() -> None:
-        store = RunStore(path, config=CONFIG)
-        for m in range(commits):
-            store.put_episodes(1, episodes(m))
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    if in_child(body) != -signal.SIGKILL:
-        raise RuntimeError(f"the writer of {path} was not killed")
-
-
-def signal_inside_a_commit(path: Path) -> int:
-    """A child (with a thread that blocks no signal) SIGTERMs itself while its commit of a
-    record is open; its exit status (143: interrupted)."""
-
-    def body() -> None:
-        threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
-        store = RunStore(path, config=CONFIG)
-        real = RunStore._put
-
-        def put(db, table, key, value, free=None):
-            real(db, table, key, value, free)
-            if table == "record":
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.05)  # the signal is taken while the transaction is open
-
-        RunStore._put = staticmethod(put)
-        with raise_on_signals():
-            store.put_record(1, {"iteration": 1})
-            time.sleep(5)  # (never reached: the interrupt comes right after the commit)
-
-    return in_child(body)
-
-
-def resumes(path: Path) -> str:
-    try:
-        with RunStore(path, config=CONFIG, resume=True):
-            return "resumed"
-    except StoreError as error:
-        return f"refused: {error}".replace(str(path), "PATH")[:120]
-
-
-def creation(folder: Path) -> collections.Counter:
-    outcomes = collections.Counter()
-    for signum in (signal.SIGKILL, signal.SIGTERM):
-        for k in range(1, 100):
-            path = folder / f"{signum}-{k}" / "run.db"
-            if in_child(stop_at_statement(path, k, signum)) == CREATED:
-                break
-            outcomes[f"{signal.Signals(signum).name} at statement k: {resumes(path)}"] += 1
-    for k in range(1, 100):
-        path = folder / f"step-{k}" / "run.db"
-        if in_child(kill_at_file_step(path, k)) == CREATED:
-            break
-        outcomes[f"SIGKILL at file step k: {resumes(path)}"] += 1
-    for limit in (0, 512, 4096, 8192, 12288, 16384, 32768):
-        path = folder / f"fsize-{limit}" / "run.db"
-
-        def body(limit=limit, path=path):
-            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
-            RunStore(path, config=CONFIG).close()
-
-        code = in_child(body)
-        outcomes[f"ulimit -f ({'write failed' if code else 'fits'}): {resumes(path)}"] += 1
-    return outcomes
-
-
-def episodes(m: int) -> dict:
-    return {m: TensorDict({"reward": torch.full((2, 5), float(m))}, batch_size=[2, 5])}
-
-
-def wal(folder: Path, tries: int, rng: random.Random) -> collections.Counter:
-    commits, path = 6, folder / "killed" / "run.db"
-    killed_writer(path, commits)
-    log = Path(f"{path}-wal").read_bytes()
-    outcomes = collections.Counter()
-    for i in range(tries):
-        copy = folder / f"try{i}"
-        copy.mkdir()
-        for f in path.parent.iterdir():
-            if not f.name.endswith(".lock"):
-                shutil.copy(f, copy / f.name)
-        damaged = bytearray(log)
-        if i % 2:
-            damaged = damaged[: rng.randrange(len(log))]
-            kind = "cut"
-        else:
-            damaged[rng.randrange(len(log))] ^= 1 << rng.randrange(8)
-            kind = "bit flip"
-        Path(copy / "run.db-wal").write_bytes(bytes(damaged))
-        try:
-            with RunStore(copy / "run.db", config=CONFIG, resume=True) as store:
-                got = 0 if store.stored is None else store.stored.num_episodes
-            outcome = "every committed row back" if got == commits else f"SILENTLY {got} rows"
-        except CorruptRunError as error:
-            outcome = "refused, naming the lost rows" if "lost" in str(error) else str(error)
-            outcome = outcome.replace(str(copy / "run.db"), "PATH")[:120]
-        outcomes[f"{kind}: {outcome}"] += 1
-        shutil.rmtree(copy)
-    return outcomes
-
-
-def signals(folder: Path, tries: int, rng: random.Random) -> collections.Counter:
-    outcomes = collections.Counter()
-    for i in range(tries):
-        path, started = folder / f"direct{i}" / "run.db", folder / f"started{i}"
-        signal_inside_a_commit(path)
-        kept = RunStore.read(path).records == {1: {"iteration": 1}}
-        outcomes[f"inside the transaction: {'committed' if kept else 'ROLLED BACK'}"] += 1
-        path = folder / f"random{i}" / "run.db"
-
-        def loop(path=path, started=started):
-            threading.Thread(target=time.sleep, args=(60,), daemon=True).start()
-            store = RunStore(path, config=CONFIG)
-            real, log = RunStore._put, open(started, "a", buffering=1)  # noqa: SIM115
-
-            def put(db, table, key, value, free=None):  # inside the open transaction
-                if table == "episode":
-                    log.write(f"{key[1]}\n")
-                real(db, table, key, value, free)
-
-            RunStore._put = staticmethod(put)
-            with raise_on_signals():
-                for m in range(10_000):
-                    store.put_episodes(1, episodes(m))
-
-        pid = os.fork()
-        if pid == 0:
-            code = 0
-            try:
-                loop()
-            except Interrupted:
-                code = 143
-            except BaseException:  # noqa: BLE001
-                code = 3
-            os._exit(code)
-        time.sleep(0.3 + rng.random() * 0.5)
-        os.kill(pid, signal.SIGTERM)
-        code = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
-        begun = len(started.read_text().split())
-        stored = RunStore.read(path).num_episodes
-        ok = code == 143 and stored == begun  # every transaction that reached its row stands
-        outcomes[f"at a random moment: {'every begun commit stands' if ok else 'LOST ONE'}"] += 1
-    return outcomes
-
-
-def cli(folder: Path, tries: int) -> collections.Counter:
-    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
-    args = ["--trials", "2", "--iterations", "2", "--steps", "5", "--repeats", "1", "--threads"]
-    args += ["1", "--test-episodes", "2", "--test-steps", "5", "--schedule", "decreasing"]
-    script = [sys.executable, str(ROOT / "examples" / "chain_walk_api.py"), *args]
-    outcomes = collections.Counter()
-    for i in range(tries):
-        out = folder / f"cli{i}"
-        proc = subprocess.Popen(
-            [*script, "--out-dir", str(out)],
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        store = out / "checkpoints" / "decreasing_AL.db"
-        while proc.poll() is None and not store.exists():
-            time.sleep(0.001)
-        proc.send_signal(signal.SIGTERM)
-        proc.communicate()
-        again = subprocess.run(
-            [*script, "--out-dir", str(out), "--resume"], env=env, capture_output=True, text=True
-        )
-        last = (again.stderr.strip().splitlines() or [""])[-1][:100] if again.returncode else ""
-        last = last.replace(str(out), "OUT")
-        outcomes[f"exit {proc.returncode}, then --resume: exit {again.returncode} {last}"] += 1
-    return outcomes
+# -- the table -------------------------------------------------------------------------------
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--tries", type=int, default=200, help="WAL damages (signal tries / 4)")
-    parser.add_argument("--cli", type=int, default=0, help="CLI SIGTERMs at store creation")
+    parser.add_argument("--kills", type=int, default=40, help="examples SIGKILLed")
+    parser.add_argument("--signals", type=int, default=40, help="examples SIGINTed/SIGTERMed")
+    parser.add_argument("--damages", type=int, default=200, help="stores' files damaged")
+    parser.add_argument(
+        "--example-damages", type=int, default=0, help="killed examples' store files damaged"
+    )
+    parser.add_argument(
+        "--commit-signals", type=int, default=20, help="SIGTERMs into open commits (×2)"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", default="", help="one attack: creation, wal, signal or cli")
+    parser.add_argument(
+        "--only", default="", help="one attack: kill, signal, example-damage, damage, creation "
+        "or commit-signal"
+    )  # fmt: skip
     parser.add_argument("--out", default="", help="also write the outcomes as JSON here")
     args = parser.parse_args()
     rng = random.Random(args.seed)
     torch.set_num_threads(1)
-    table = {}
+    table: dict[str, Tally] = {}
+    began = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        attacks = {"creation": lambda d: creation(d)}
-        attacks["wal"] = lambda d: wal(d, args.tries, rng)
-        attacks["signal"] = lambda d: signals(d, max(args.tries // 4, 1), rng)
-        if args.cli:
-            attacks["cli"] = lambda d: cli(d, args.cli)
+        attacks = {
+            "creation": lambda d: creation(d),
+            "commit-signal": lambda d: commit_signals(d, args.commit_signals, rng),
+            "damage": lambda d: damage(d, args.damages, rng),
+        }
+        reference = []
+
+        def on_example(kind: str, tries: int):
+            def attack(d: Path) -> Tally:
+                if not reference:
+                    reference.append(reference_run(folder))
+                return example(d, kind, tries, rng, reference[0])
+
+            return attack
+
+        attacks["kill"] = on_example("kill", args.kills)
+        attacks["signal"] = on_example("signal", args.signals)
+        attacks["example-damage"] = on_example("damage", args.example_damages)
         for name, attack in attacks.items():
-            if args.only and name != args.only:
+            skipped = name in EXAMPLE_ATTACKS and not getattr(args, EXAMPLE_ATTACKS[name])
+            if skipped or (args.only and name != args.only):
                 continue
             (folder / name).mkdir()
             started = time.perf_counter()
-            outcomes = attack(folder / name)
-            print(f"\n{name} ({time.perf_counter() - started:.0f} s)")
-            for outcome, count in sorted(outcomes.items()):
-                print(f"  {count:4d}  {outcome}")
-            table[name] = dict(sorted(outcomes.items()))
+            table[name] = tally = attack(folder / name)
+            print(f"\n{name} ({time.perf_counter() - started:.0f} s)", flush=True)
+            for outcome, count in sorted(tally.outcomes.items()):
+                print(f"  {count:4d}  {outcome}", flush=True)
+    print("\n| attack | tries | committed rewards lost or bought twice | silent damages |")
+    print("| --- | ---: | ---: | ---: |")
+    for name, tally in table.items():
+        print(f"| {name} | {tally.tries} | {tally.lost_or_twice} | {tally.silent} |")
+    total = [sum(getattr(t, k) for t in table.values()) for k in ("tries", "lost_or_twice")]
+    silent = sum(t.silent for t in table.values())
+    print(f"| all | {total[0]} | {total[1]} | {silent} |")
     if args.out:
-        Path(args.out).write_text(json.dumps(table, indent=1))
+        payload = {
+            "benchmark": "durability_attacks",
+            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+            "machine": machine_info(),
+            "seconds": time.perf_counter() - began,
+            "attacks": {name: tally.as_dict() for name, tally in table.items()},
+        }
+        Path(args.out).write_text(json.dumps(payload, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ from envs.batting import BASIS_TAU, BattingEnv, basis_centers
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 
 DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
 TIMERS: dict[str, float] = defaultdict(float)
@@ -115,16 +116,17 @@ def run_arguments(doc: str, *, trials: int, audit: float, out: str) -> argparse.
 
 def active_run(args: argparse.Namespace, make) -> ActivePolicyIteration:
     """The active run timed: 'decreasing', Z = 5, K = 4, the paper's basis; envs from ``make``."""
-    return ActivePolicyIteration(
-        env=make,
-        selector=SamplingPolicySelector(env=make),
-        basis=basis(),
+    spec = RunSpec.of(
         schedule=DECREASING[: args.iterations],
         num_steps=10,
         gamma=1.0,
+        num_repeats=5,
         psi_mode="single",
         num_trials=args.trials,
         keep_reward_free=False,
+    )
+    return ActivePolicyIteration(
+        spec, env=make, selector=SamplingPolicySelector(env=make), basis=basis()
     )
 
 

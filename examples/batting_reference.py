@@ -4,59 +4,36 @@
 2. A uniformly random policy with the torque noise: the share of episodes in which the bat hits
    the ball and the distribution of the carry over those hits.
 
+Writes them as JSON (``examples/train_batting.py`` draws the optimum in its figure).
+
     python examples/batting_reference.py --episodes 1000 --seed 0
 """
 
-from __future__ import annotations
-
+import itertools
+import json
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from _cli import field, not_here, parse
-from _process import collector_off_for_imports, freeze_imported_objects
-
-
-@dataclass
-class Args:
-    """Command-line arguments of the reference numbers."""
-
-    episodes: int = field(1000, low=1, help="noisy episodes of the uniformly random policy")
-    seed: int = field(0, low=0, help="seed of the torque noise and of the random actions")
-    out: str = field(
-        "results/batting_reference.json",
-        help="the JSON file the summary goes to (its folder is created)",
-    )
-
-
-def parse_args(argv: list[str] | None = None) -> Args:
-    return parse(
-        Args,
-        argv,
-        __doc__,
-        unavailable=not_here(
-            "resume",
-            "backend",
-            "out_dir",
-            "logger",
-            trials="there is no learning here; the random policy's sample is --episodes",
-            device="MuJoCo runs on the CPU and there is no algebra to move",
-        ),
-    )
-
-
-if __name__ == "__main__":
-    parse_args()  # --help and bad flags answer here, before the heavy imports below
-    collector_off_for_imports()  # examples/_process.py: start-up and exit cost less
-
-import itertools
-import json
-
 import numpy as np
 import torch
+import tyro
 
 from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator
 
 ACTION_NAMES = ("cock", "swing")  # action 0 = (50, -35) N m, action 1 = (-50, 10) N m
+
+
+@dataclass(frozen=True)
+class Args:
+    """The reference numbers' arguments."""
+
+    episodes: int = 1000
+    """noisy episodes of the uniformly random policy"""
+    seed: int = 0
+    """seed of the torque noise and of the random actions"""
+    out: str = "results/batting_reference.json"
+    """the JSON file the summary goes to (its folder is created)"""
 
 
 def reference_optimum() -> dict:
@@ -100,14 +77,26 @@ def random_policy(episodes: int, seed: int) -> dict:
         "episodes": episodes,
         "hit_share": float(hit.mean()),
         "max_rewards_per_episode": int(hits.max()),
-        "carry_mean": float(carry.mean()),
-        "carry_min": float(carry.min()),
-        "carry_max": float(carry.max()),
+        "carry_mean": float(carry.mean()) if len(carry) else None,
+        "carry_min": float(carry.min()) if len(carry) else None,
+        "carry_max": float(carry.max()) if len(carry) else None,
         "carry_quantiles_5_25_50_75_95": [float(x) for x in q],
     }
 
 
-def main(args: Args) -> dict:
+def main(argv: list[str] | None = None) -> dict:
+    args = tyro.cli(Args, args=argv, description=__doc__)
+    out = Path(args.out)
+    try:  # checked before any work: one line naming the value, exit 2
+        if args.episodes < 1 or args.seed < 0:
+            raise ValueError(
+                f"episodes must be >= 1 and seed >= 0, got {args.episodes}, {args.seed}"
+            )
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except (ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
     opt = reference_optimum()
     names = " ".join(ACTION_NAMES[a] for a in opt["best_sequence"])
     print(f"reference optimum (noiseless, best of 1024): {opt['best_sequence']} = {names}")
@@ -117,22 +106,21 @@ def main(args: Args) -> dict:
     print(f"  {opt['sequences_hitting']} of 1024 sequences hit the ball")
     for seq, carry in opt["top5"]:
         print(f"  {''.join(map(str, seq))}  {carry:.2f} m")
+
     rnd = random_policy(args.episodes, args.seed)
-    q = rnd["carry_quantiles_5_25_50_75_95"]
+    q = ", ".join(f"{x:.2f}" for x in rnd["carry_quantiles_5_25_50_75_95"])
     print(f"random policy, {rnd['episodes']} noisy episodes: hit share {rnd['hit_share']:.3f}")
-    print(
-        f"  carry mean {rnd['carry_mean']:.2f} m, min {rnd['carry_min']:.2f}, "
-        f"max {rnd['carry_max']:.2f}; quantiles 5/25/50/75/95 %: "
-        + ", ".join(f"{x:.2f}" for x in q)
-    )
+    if rnd["carry_mean"] is not None:
+        print(
+            f"  carry mean {rnd['carry_mean']:.2f} m, min {rnd['carry_min']:.2f}, "
+            f"max {rnd['carry_max']:.2f}; quantiles 5/25/50/75/95 %: {q}"
+        )
+
     result = {"args": asdict(args), "reference_optimum": opt, "random_policy": rnd}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
     print(f"wrote {out}")
     return result
 
 
 if __name__ == "__main__":
-    freeze_imported_objects()
-    main(parse_args())
+    main()

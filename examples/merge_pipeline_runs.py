@@ -4,66 +4,34 @@ The showcase's seeds are often run as separate processes (``--modes AL`` beside 
 ``--seed 0`` and ``--seed 20``), each writing its own ``torchrl_pipeline.json``. This reads
 those files, checks that they ran the same setting (every argument but the seeds, the modes,
 the threads and the output folder) and that no (mode, seed) appears twice with different
-numbers, then prints and writes what one run over all of their seeds would have: the per-mode
-summary, the paired t-test of AL vs PL over the seeds both modes ran, and the plot.
+numbers, then writes what one run over all of their seeds would have: the per-mode summary, the
+paired t-test of AL vs PL over the seeds both modes ran, and the plot.
 
-Run::
-
-    python examples/merge_pipeline_runs.py --runs runs/al0,runs/pl0,runs/al20,runs/pl20 \\
-        --out-dir results/merged
+    python examples/merge_pipeline_runs.py --runs runs/al0 runs/pl0 --out-dir results/merged
 """
 
-from __future__ import annotations
-
-import dataclasses
 import json
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from _cli import field, not_here, out_dir_error, parse
-from _process import collector_off_for_imports, freeze_imported_objects
+import tyro
+
+from torch_api.experiment.seeds import write_seeds
 
 RESULTS = "torchrl_pipeline.json"
-PER_PROCESS = ("seeds", "seed", "modes", "out_dir", "resume", "overwrite", "threads")
-PER_PROCESS += ("merged_from",)
-"""Arguments that may differ between the merged processes (which seeds, where, how run)."""
+PER_PROCESS = ("seeds", "seed", "modes", "execution", "merged_from")  # may differ between them
+GOAL = {"CartPole-v1": 475.0}  # torchrl_pipeline.py's: a last greedy return "learned"
 
 
-@dataclasses.dataclass
+@dataclass
 class Args:
     """Command-line arguments of the merge."""
 
-    runs: str = field("", help="the runs' --out-dir folders, comma-separated")
-    out_dir: str = field("results/merged", help="where the merged JSON and plot go")
-
-
-def folders(args: Args) -> list[Path]:
-    return [Path(p) for p in args.runs.split(",") if p]
-
-
-def check(args: Args) -> str | None:
-    """The output folder first (as every script's), then the runs to merge."""
-    if problem := out_dir_error(args.out_dir):
-        return problem
-    if not folders(args):
-        return "--runs must name at least one folder of a torchrl_pipeline.py run"
-    missing = [str(d) for d in folders(args) if not (d / RESULTS).is_file()]
-    return f"--runs: no {RESULTS} in {', '.join(missing)}" if missing else None
-
-
-def parse_args(argv=None) -> Args:
-    unavailable = not_here(
-        "trials", "resume", "backend",
-        seed="the seeds are those of the merged runs",
-        device="nothing is computed: the runs' numbers are read",
-    )  # fmt: skip
-    return parse(Args, argv, __doc__, check=check, unavailable=unavailable)
-
-
-if __name__ == "__main__":
-    parse_args()  # --help and bad flags answer here, before matplotlib loads
-    collector_off_for_imports(torch_follows=False)  # examples/_process.py (no torch here)
-
-import _pipeline_report as report  # noqa: E402
+    runs: tuple[str, ...] = ()
+    """the runs' --out-dir folders"""
+    out_dir: str = "results/merged"
+    """where the merged JSON and plot go"""
 
 
 def setting(args: dict) -> dict:
@@ -83,7 +51,7 @@ def merge(payloads: list[dict]) -> tuple[dict, dict, dict, float]:
         theirs = setting(p["args"])
         if theirs != first:
             diff = sorted(k for k in first.keys() | theirs.keys() if first.get(k) != theirs.get(k))
-            raise ValueError(f"{p['args']['out_dir']} ran another setting: {diff}")
+            raise ValueError(f"{p['args']['execution']['out_dir']} ran another setting: {diff}")
         for mode, by_seed in p["runs"].items():
             for seed, run in by_seed.items():
                 earlier = runs.setdefault(mode, {}).get(int(seed))
@@ -94,26 +62,30 @@ def merge(payloads: list[dict]) -> tuple[dict, dict, dict, float]:
     return payloads[0]["args"], runs, actor, sum(p["wall_seconds"] for p in payloads)
 
 
-def main(argv=None) -> dict:
-    options = parse_args(argv)
-    payloads = [json.loads((d / RESULTS).read_text()) for d in folders(options)]
-    args, runs, actor, wall = merge(payloads)
-    if set(runs) == {"AL", "PL"}:  # pair over the seeds both modes ran
+def main(argv: list[str] | None = None) -> dict:
+    options = tyro.cli(Args, args=argv, description=__doc__)
+    folders = [Path(p) for p in options.runs]
+    try:
+        if not folders:
+            raise ValueError("--runs must name at least one folder of a torchrl_pipeline.py run")
+        if missing := [str(d) for d in folders if not (d / RESULTS).is_file()]:
+            raise ValueError(f"--runs: no {RESULTS} in {', '.join(missing)}")
+        args, runs, actor, wall = merge([json.loads((d / RESULTS).read_text()) for d in folders])
+        Path(options.out_dir).mkdir(parents=True, exist_ok=True)
+    except (ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if set(runs) >= {"AL", "PL"} and runs["AL"] and runs["PL"]:  # pair the seeds both ran
         both = sorted(set(runs["AL"]) & set(runs["PL"]))
         runs = {mode: {s: runs[mode][s] for s in both} for mode in ("AL", "PL")}
     seeds = sorted({s for r in runs.values() for s in r})
-    print(f"{len(payloads)} files: {len(seeds)} seeds, {seeds[0]} to {seeds[-1]}")
-    merged = dataclasses.make_dataclass("MergedArgs", list(args))(**args)  # summarise's args
-    payload = report.summarise(merged, runs, actor, wall)
+    print(f"{len(folders)} files: {len(seeds)} seeds, {seeds[0]} to {seeds[-1]}")
+    args |= {"merged_from": [str(d) for d in folders]}
     print("(the wall time is the merged processes' sum)")
-    payload["args"] = args | {"merged_from": [str(d) for d in folders(options)]}
-    out = Path(options.out_dir)
-    (out / RESULTS).write_text(json.dumps(payload, indent=1))
-    report.plot(payload, out / "torchrl_pipeline.png")
-    print(f"wrote {out / RESULTS} and {out / 'torchrl_pipeline.png'}")
-    return payload
+    title = f"{args['env']} through TorchRL"
+    out = Path(options.out_dir) / RESULTS
+    return write_seeds(out, args, runs, actor, goal=GOAL.get(args["env"]), title=title, wall=wall)
 
 
 if __name__ == "__main__":
-    freeze_imported_objects()
     main()

@@ -31,8 +31,10 @@ import torch
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.runs.store import RunStore
 
 SCHEDULE = (3, 2, 2, 1)
@@ -53,19 +55,22 @@ class CountingChain(ChainWalkEnv):
 
 def make_api(path, slice_mode, resume):
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    return ActivePolicyIteration(
-        env=lambda e: CountingChain(batch_size=e),
-        selector=SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e), num_repeats=2),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=SCHEDULE,
         num_steps=STEPS,
         gamma=GAMMA,
         psi_mode="grouped",
+        num_repeats=2,
         num_trials=TRIALS,
         seed=3,
-        checkpoint_path=path,
-        resume=resume,
         rewarded_slice=slice_mode,
+    )
+    return ActivePolicyIteration(
+        spec,
+        env=lambda e: CountingChain(batch_size=e),
+        selector=SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e)),
+        basis=basis,
+        durable=DurableRun(path, resume=resume),
     )
 
 

@@ -10,6 +10,7 @@ from torch_api.core.design import build_design
 from torch_api.core.psi import PsiHat
 from torch_api.data import EpisodeBuffer
 from torch_api.loop.iteration import ActivePolicyIteration
+from torch_api.loop.spec import RunSpec
 from torch_api.policies import TabularPolicy
 
 NO_SUCH_GPU = "cuda:99" if torch.cuda.is_available() else "cuda"
@@ -19,39 +20,52 @@ def _basis():
     return GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
 
 
+OBJECTS = {"env", "basis", "selector", "device"}  # the loop's arguments besides the spec
+
+
 def _api(**overrides):
-    args = {
-        "env": lambda e: ChainWalkEnv(batch_size=e),
-        "basis": _basis(),
+    settings = {
         "schedule": (2, 2),
         "num_steps": 5,
         "gamma": 0.9,
         "psi_mode": "grouped",
         "num_trials": 2,
-    } | overrides
-    return ActivePolicyIteration(**args)
+    } | {k: v for k, v in overrides.items() if k not in OBJECTS}
+    objects = {"env": lambda e: ChainWalkEnv(batch_size=e), "basis": _basis()} | {
+        k: v for k, v in overrides.items() if k in OBJECTS
+    }
+    return ActivePolicyIteration(RunSpec.of(mode="passive", **settings), **objects)
 
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"lam": 0.0}, "lam must be > 0, got 0.0"),
-        ({"lam": -1e-3}, "lam must be > 0, got -0.001"),
-        ({"gamma": 0.0}, r"gamma must lie in \(0, 1\], got 0.0"),
-        ({"gamma": 1.5}, r"gamma must lie in \(0, 1\], got 1.5"),
-        ({"schedule": (3, 0, 2)}, r"episode counts >= 1, got \[3, 0, 2\]"),
-        ({"schedule": ()}, "non-empty"),
-        ({"epsilon_schedule": lambda l: 1.5}, r"epsilon_schedule\(1\) = 1.5 lies outside \[0, 1\]"),
-        ({"epsilon_schedule": lambda l: -0.1}, r"epsilon_schedule\(1\) = -0.1 lies outside"),
-        ({"initial_theta": torch.ones(11)}, r"initial_theta must have shape \[12\]"),
+        ({"lam": 0.0}, r"evaluation.lam must be >= 1e-10 .* got 0.0"),
+        ({"lam": -1e-3}, r"evaluation.lam must be >= 1e-10 .* got -0.001"),
+        ({"gamma": 0.0}, r"evaluation.gamma must lie in \(0, 1\], got 0.0"),
+        ({"gamma": 1.5}, r"evaluation.gamma must lie in \(0, 1\], got 1.5"),
+        ({"schedule": (3, 0, 2)}, r"rewarded.schedule\[1\] must be >= 1, got 0"),
+        ({"schedule": ()}, "rewarded.schedule must not be empty"),
+        ({"epsilon": 1.5}, r"policy.epsilon must lie in \[0, 1\], got 1.5"),
+        ({"epsilon": -0.1}, r"policy.epsilon must lie in \[0, 1\], got -0.1"),
+        (
+            {"initial_theta": tuple(torch.ones(11).tolist())},
+            "policy.initial_theta has 11 values; the basis has B = 12 features",
+        ),
         ({"selector": "active"}, "selector must be a SamplingPolicySelector or None"),
-        ({"trial_seeds": [1, 2, 3]}, "trial_seeds must hold num_trials = 2 seeds, got 3"),
-        ({"num_trials": 0}, "num_trials must be >= 1, got 0"),
+        (
+            {"trial_seeds": [1, 2, 3]},
+            "trials.trial_seeds needs one seed per trial: 3 seeds for num_trials=2",
+        ),
+        ({"num_trials": 0}, "trials.num_trials must be >= 1, got 0"),
         ({"env": ChainWalkEnv(batch_size=4)}, "num_trials needs env as a callable"),
-        ({"lam": True}, "lam must be > 0, got True"),
-        ({"lam": 1e-300}, "lam must be >= 1e-10 .* got 1e-300"),
-        ({"seed": 1.5}, "seed must be an integer, got 1.5"),
-        ({"candidate_offsets": (0.0, float("nan"))}, r"candidate_offsets must be finite"),
+        ({"lam": True}, "evaluation.lam must be a number, got True"),
+        ({"lam": 1e-300}, "evaluation.lam must be >= 1e-10 .* got 1e-300"),
+        ({"seed": 1.5}, "trials.seed must be an integer, got 1.5"),
+        (
+            {"candidate_offsets": (0.0, float("nan"))},
+            r"policy.candidate_offsets\[1\] must be finite",
+        ),
         ({"device": NO_SUCH_GPU}, f"device '{NO_SUCH_GPU}': torch sees"),
     ],
 )

@@ -18,7 +18,7 @@ from _processes import run_example  # (tests/ is on sys.path)
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.loop.iteration import ActivePolicyIteration
-from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.runs.dispatch import trial_seeds
 
 SEED = 3
@@ -27,18 +27,17 @@ SEED = 3
 def run(seeds: list[int]) -> dict:
     """An active chain-walk run of the trials with these seeds: per-trial θ, choices, J'."""
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    api = ActivePolicyIteration(
-        env=lambda rows: ChainWalkEnv(batch_size=rows),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=(3, 1),
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
-        selector=SamplingPolicySelector(num_repeats=2),
+        num_repeats=2,
         num_trials=len(seeds),
         seed=SEED,
         trial_seeds=seeds,
     )
+    api = ActivePolicyIteration(spec, env=lambda rows: ChainWalkEnv(batch_size=rows), basis=basis)
     history = api.run()
     return {
         "theta": api.theta,
@@ -95,8 +94,8 @@ def _rows_of_first_trials(path: Path, count: int) -> list[tuple]:
 
 CLIS = {
     "chain_walk_api": ("--iterations", "1", "--test-episodes", "3", "--test-steps", "10"),
-    "gym_drop_in": ("--schedule", "2,2", "--steps", "10", "--repeats", "2", "--test-episodes", "2")
-    + ("--test-steps", "20"),
+    "gym_drop_in": ("--schedule", "2", "2", "--steps", "10", "--repeats", "2")
+    + ("--test-episodes", "2", "--test-steps", "20"),
     "train_batting": ("--iterations", "1", "--repeats", "2", "--schedule", "decreasing"),
 }
 
@@ -134,17 +133,18 @@ def batting_counts(seeds: list[int]) -> list[dict]:
     from envs.batting import BASIS_TAU, N_ACTIONS, BattingEnv, basis_centers
 
     basis = GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=N_ACTIONS)
-    api = ActivePolicyIteration(
-        env=lambda rows: BattingEnv(batch_size=rows, end_at_hit=True),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=10,
         gamma=1.0,
         psi_mode="single",
-        selector=SamplingPolicySelector(num_repeats=1),
+        num_repeats=1,
         num_trials=len(seeds),
         seed=SEED,
         trial_seeds=seeds,
+    )
+    api = ActivePolicyIteration(
+        spec, env=lambda rows: BattingEnv(batch_size=rows, end_at_hit=True), basis=basis
     )
     rows = []
     for _ in range(2):

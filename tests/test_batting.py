@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import importlib
 import math
-import sys
-from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -25,12 +23,10 @@ from envs.batting import (
     BattingEnv,
     BattingGymEnv,
     BattingSimulator,
+    PhysicsAudit,
     PhysicsHook,
     flight_carry,
 )
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-from _physics_audit import PhysicsAudit  # noqa: E402  (instrumentation lives with the examples)
 
 # MuJoCo's joint limits are soft (solreflimit time constant 20 ms, which the 7.5 ms RK4 swing
 # needs: at least 2 x timestep): a joint slamming into its stop at 10-20 rad/s overshoots by

@@ -39,7 +39,11 @@ BENCHMARKS = ROOT / "benchmarks"
             + ["--backend", "processes", "--quick"],
             "| 2 | processes | ",
         ),
-        (["durability_attacks.py", "--tries", "4"], "SIGTERM at statement k: resumed"),
+        (
+            ["durability_attacks.py", "--kills", "0", "--signals", "1", "--damages", "4"]
+            + ["--commit-signals", "1"],
+            "| all | ",
+        ),
         (["batting_ceiling.py", "--quick"], "ceiling (best LSPI score above):"),
         (["cartpole_remedies.py", "--quick", "--only", "LSTD PL iwcv"], "| LSTD PL iwcv | "),
     ],

@@ -5,6 +5,7 @@ import _thread
 import math
 import os
 import pickle
+import re
 import shutil
 import signal
 import sqlite3
@@ -20,8 +21,10 @@ import torch_api.core.solve
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.core.criterion import j_eq46
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.runs.store import (
     CorruptRunError,
     RunExistsError,
@@ -38,30 +41,42 @@ def _half_j(moments, lam):
     return j_eq46(moments, lam) / 2
 
 
-def _api(path=None, trials=3, mode="active", env=ChainWalkEnv, repeats=2, criterion=j_eq46, **kw):
-    settings = {
-        "centers": torch.tensor(CENTERS)[:, None],
-        "tau": TAU,
-        "schedule": (3, 2, 2),
-        "gamma": GAMMA,
-        "num_steps": 10,
-    }
-    settings |= {k: kw.pop(k) for k in list(kw) if k in settings}
-    basis = GaussianActionBasis(centers=settings["centers"], tau=settings["tau"], num_actions=2)
-    return ActivePolicyIteration(
-        env=lambda e: env(batch_size=e),
-        basis=basis,
-        schedule=settings["schedule"],
-        num_steps=settings["num_steps"],
-        gamma=settings["gamma"],
-        selector=SamplingPolicySelector(num_repeats=repeats, criterion=criterion)
-        if mode == "active"
-        else None,
+def _api(
+    path=None,
+    trials=3,
+    mode="active",
+    env=ChainWalkEnv,
+    repeats=2,
+    criterion=j_eq46,
+    centers=None,
+    tau=TAU,
+    resume=False,
+    overwrite=False,
+    on_commit=None,
+    device=None,
+    **settings,
+):
+    """A chain-walk run of 3 trials (stored at ``path``); ``settings`` are the spec's fields."""
+    centers = torch.tensor(CENTERS)[:, None] if centers is None else centers
+    basis = GaussianActionBasis(centers=centers, tau=tau, num_actions=2)
+    settings = {"schedule": (3, 2, 2), "gamma": GAMMA, "num_steps": 10, "seed": 7} | settings
+    spec = RunSpec.of(
         psi_mode="grouped",
         num_trials=trials,
-        seed=7,
-        checkpoint_path=path,
-        **kw,
+        mode=mode,
+        **({"num_repeats": repeats} if mode == "active" else {}),
+        **settings,
+    )
+    durable = None
+    if path is not None:
+        durable = DurableRun(path, resume=resume, overwrite=overwrite, on_commit=on_commit)
+    return ActivePolicyIteration(
+        spec,
+        env=lambda e: env(batch_size=e),
+        basis=basis,
+        selector=SamplingPolicySelector(criterion=criterion) if mode == "active" else None,
+        durable=durable,
+        device=device,
     )
 
 
@@ -116,19 +131,19 @@ def test_going_on_after_a_stop_at_the_selections_commit_buys_as_a_resume(tmp_pat
     going on buys what a resumed run buys, the uninterrupted run's episodes."""
 
     def stop_at_the_fourth(counter):
-        def hook(api):
+        def hook():
             counter.append(1)
             if len(counter) == 4:
                 raise KeyboardInterrupt
 
         return hook
 
-    going_on = _api(tmp_path / "a.db", on_checkpoint=stop_at_the_fourth([]))
+    going_on = _api(tmp_path / "a.db", on_commit=stop_at_the_fourth([]))
     with pytest.raises(KeyboardInterrupt):
         going_on.run()
-    going_on.on_checkpoint = None
+    going_on.durable.on_commit = lambda: None
     going_on.run()
-    stopped = _api(tmp_path / "b.db", on_checkpoint=stop_at_the_fourth([]))
+    stopped = _api(tmp_path / "b.db", on_commit=stop_at_the_fourth([]))
     with pytest.raises(KeyboardInterrupt):
         stopped.run()
     stopped.close()
@@ -146,7 +161,7 @@ def test_resume_after_an_iteration_reproduces_the_uninterrupted_run(tmp_path, fu
     resumed = _api(path, resume=True)
     resumed.run()
     _same_run(full, resumed)
-    assert resumed.store.closed  # a completed run releases its store
+    assert resumed.durable.closed  # a completed run releases its store
 
 
 def test_one_episode_at_a_time_resumes_mid_iteration(tmp_path):
@@ -155,12 +170,12 @@ def test_one_episode_at_a_time_resumes_mid_iteration(tmp_path):
     path = tmp_path / "run.db"
     commits = []
 
-    def stop_at_seventh(api):  # iteration 1's selection, 3 episodes and record; then 2's
-        commits.append(api.iteration)
+    def stop_at_seventh():  # iteration 1's selection, 3 episodes and record; then 2's
+        commits.append(1)
         if len(commits) == 7:
             raise KeyboardInterrupt
 
-    first = _api(path, rewarded_slice="episode", env=_CountingChain, on_checkpoint=stop_at_seventh)
+    first = _api(path, rewarded_slice="episode", env=_CountingChain, on_commit=stop_at_seventh)
     with pytest.raises(KeyboardInterrupt):  # episode 0 of iteration 2 bought, 1 not yet
         first.run()
     first.close()
@@ -191,42 +206,89 @@ def test_an_existing_run_is_never_replaced_silently(tmp_path, full):
 @pytest.mark.parametrize(
     ("change", "name"),
     [
-        ({"trials": 2}, "num_trials"),
-        ({"mode": "passive"}, "mode"),
-        ({"repeats": 3}, "num_repeats"),
+        ({"trials": 2}, "trials.num_trials"),
+        ({"mode": "passive"}, "selection.num_repeats"),
+        ({"repeats": 3}, "selection.num_repeats"),
         ({"criterion": _half_j}, "criterion"),
-        ({"centers": torch.tensor([[1.0], [4.0], [5.0], [7.0], [9.0]])}, "basis"),
-        ({"tau": 2.0}, "basis"),
-        ({"epsilon_schedule": lambda l: 0.1 / l}, "epsilons"),
-        ({"candidate_offsets": (0.0, 0.5)}, "candidate_offsets"),
-        ({"env": type("Other", (ChainWalkEnv,), {})}, "env"),
-        ({"num_steps": 8}, "num_steps"),
-        ({"gamma": 0.8}, "gamma"),
-        ({"schedule": (3, 2, 1)}, "schedule"),
-        ({"rewarded_slice": "episode"}, "rewarded_slice"),
+        ({"centers": torch.tensor([[1.0], [4.0], [5.0], [7.0], [9.0]])}, "basis.state.centers"),
+        ({"tau": 2.0}, "basis."),
+        ({"epsilon": 0.1}, "policy.epsilon"),
+        ({"epsilon_decay": "constant"}, "policy.epsilon_decay"),
+        ({"candidate_offsets": (0.0, 0.5)}, "policy.candidate_offsets"),
+        ({"env": type("Other", (ChainWalkEnv,), {})}, "env.class"),
+        ({"num_steps": 8}, "rewarded.num_steps"),
+        ({"gamma": 0.8}, "evaluation.gamma"),
+        ({"lam": 1e-2}, "evaluation.lam"),
+        ({"schedule": (3, 2, 1)}, "rewarded.schedule"),
+        ({"rewarded_slice": "episode"}, "rewarded.rewarded_slice"),
+        ({"seed": 8}, "trials.seed"),
     ],
 )
 def test_a_run_of_other_settings_is_refused(tmp_path, change, name):
     path = tmp_path / "run.db"
     with _api(path) as api:
         api.step()
-    with pytest.raises(CorruptRunError, match=rf"run.db was made with other settings: .*'{name}'"):
+    with pytest.raises(CorruptRunError, match=rf"run.db was made with other settings: .*'{name}"):
         _api(path, resume=True, **change)
 
 
 def test_env_parameters_are_part_of_the_settings(tmp_path):
-    class Slippery(ChainWalkEnv):
-        def __init__(self, **kw):
-            super().__init__(success_prob=0.6, **kw)
+    """The same env class with another parameter (the env declares it): refused, named."""
+
+    def slippery(**kw):
+        return ChainWalkEnv(success_prob=0.6, **kw)
 
     path = tmp_path / "run.db"
     with _api(path) as api:
         api.step()
-    with pytest.raises(CorruptRunError, match=r"other settings: \['env'\]"):
-        _api(path, resume=True, env=Slippery)
+    with pytest.raises(CorruptRunError, match=r"other settings: \['env\.success_prob'\]"):
+        _api(path, resume=True, env=slippery)
 
 
-def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monkeypatch):
+def test_a_new_public_attribute_or_a_moved_basis_module_keeps_a_run_resumable(
+    tmp_path, monkeypatch, full
+):
+    """The identity holds the classes' names and their declared parameters only: an env that
+    got a harmless new public attribute, and the basis class imported from another module path
+    (as after a package reorganisation), resume the stored run."""
+
+    def noted(**kw):
+        env = ChainWalkEnv(**kw)
+        env.note = "x"  # a public attribute no constructor declares
+        return env
+
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+        stored = api.identity
+    monkeypatch.setattr(GaussianActionBasis, "__module__", "torch_api.basis")  # the old path
+    resumed = _api(path, resume=True, env=noted)
+    assert resumed.resumed and resumed.iteration == 1
+    assert resumed.identity == stored
+    assert not any("note" in key or "torch_api.basis" in str(v) for key, v in stored.items())
+    resumed.run()
+    _same_run(full, resumed)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"lam": 1e-2}, "evaluation.lam"),
+        ({"repeats": 3}, "selection.num_repeats"),
+        ({"schedule": (3, 2, 3)}, "rewarded.schedule"),
+        ({"seed": 8}, "trials.seed"),
+    ],
+)
+def test_a_changed_setting_refuses_the_resume_naming_only_its_field(tmp_path, change, field):
+    path = tmp_path / "run.db"
+    with _api(path) as api:
+        api.step()
+    with pytest.raises(CorruptRunError, match=rf"other settings: \['{re.escape(field)}'\]$"):
+        _api(path, resume=True, **change)
+    _api(path, resume=True).close()  # (the stored run is untouched, and resumable as it was)
+
+
+def test_device_may_change_after_a_failed_fit(tmp_path, monkeypatch):
     path = tmp_path / "run.db"
     api = _api(path, mode="passive", env=_CountingChain)
 
@@ -242,7 +304,7 @@ def test_lambda_device_and_workers_may_change_after_a_failed_fit(tmp_path, monke
     assert len(RunStore.read(path).episodes[1]) == 3  # the bought rewards are stored
     before = _CountingChain.measured
     resumed = _api(path, mode="passive", resume=True, device="cpu", env=_CountingChain)
-    assert resumed.pending is not None
+    assert resumed.buyer.pending is not None
     resumed.run()
     assert _CountingChain.measured - before == 3 * (2 + 2) * 10  # iteration 1 not bought again
     reference = _api(mode="passive")
@@ -368,7 +430,7 @@ def test_a_full_disk_is_one_clear_line_and_keeps_what_was_stored(tmp_path):
         api.step()
         api.close()
         api = _api({str(path)!r}, resume=True)
-        size = sum(p.stat().st_size for p in api.checkpoint_path.parent.iterdir())
+        size = sum(p.stat().st_size for p in api.durable.path.parent.iterdir())
         resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
         try:
             api.run()
@@ -426,7 +488,7 @@ def test_flipped_bytes_are_refused_or_change_nothing(tmp_path):
         ea, eb = target.rewarded.episodes(), reference.rewarded.episodes()
         for key in ea.keys(True, True):
             assert torch.equal(ea[key], eb[key])
-        assert target.pending.chosen.tolist() == reference.pending.chosen.tolist()
+        assert target.buyer.pending.chosen.tolist() == reference.buyer.pending.chosen.tolist()
         same += 1
     print(f"{refused} of {tries} flips refused, {same} in unused bytes changed nothing")
     assert refused + same == tries and refused > 0
@@ -589,12 +651,12 @@ def test_env_fault_while_buying_keeps_earlier_rewards_and_names_the_failure(tmp_
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"num_steps": 2.5}, "num_steps must be an integer"),
-        ({"schedule": (2.7, 1.9)}, "integer episode counts"),
-        ({"schedule": (True, 2)}, "integer episode counts"),
-        ({"lam": math.nan}, "lam must be > 0, got nan"),
-        ({"lam": math.inf}, "lam must be finite, got inf"),
-        ({"knn_k": 2.5}, "knn_k must be an integer"),
+        ({"num_steps": 2.5}, r"rewarded.num_steps must be an integer, got 2.5"),
+        ({"schedule": (2.7, 1.9)}, r"rewarded.schedule\[0\] must be an integer, got 2.7"),
+        ({"schedule": (True, 2)}, r"rewarded.schedule\[0\] must be an integer, got True"),
+        ({"lam": math.nan}, "evaluation.lam must be finite, got nan"),
+        ({"lam": math.inf}, "evaluation.lam must be finite, got inf"),
+        ({"knn_k": 2.5}, "evaluation.knn_k must be an integer, got 2.5"),
     ],
 )
 def test_non_integer_counts_and_bad_lambda_are_refused(kwargs, match):

@@ -17,15 +17,16 @@ import torch
 
 from envs.batting import MAX_STEPS, BattingEnv
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
+from torch_api._checks import _check_device
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.policies import LinearQPolicy
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import chain_walk_api  # noqa: E402
 import chain_walk_one_step  # noqa: E402
-from _cli import device_error  # noqa: E402
 from train_batting import make_basis  # noqa: E402
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -34,20 +35,25 @@ RTOL = 1e-9  # float64 algebra: CPU and GPU differ by the order of their sums on
 
 def _chain_walk_run(device: str, mode: str) -> ActivePolicyIteration:
     """Three batched chain-walk trials with the walks, the rollouts and the algebra on device."""
-    api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11, device=device),
-        selector=SamplingPolicySelector(
-            env=lambda e: ChainWalkEnv(batch_size=e, seed=12, device=device), num_repeats=3
-        )
-        if mode == "active"
-        else None,
-        basis=GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2),
+    spec = RunSpec.of(
         schedule=(5, 3, 2),
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
         num_trials=3,
         seed=5,
+        mode=mode,
+        **({"num_repeats": 3} if mode == "active" else {}),
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11, device=device),
+        selector=SamplingPolicySelector(
+            env=lambda e: ChainWalkEnv(batch_size=e, seed=12, device=device)
+        )
+        if mode == "active"
+        else None,
+        basis=GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2),
         device=device,
     )
     api.run()
@@ -103,17 +109,14 @@ def test_batting_algebra_on_device_gives_the_cpu_numbers(device):
     """Physics on the CPU, psi_hat, J and the solves on ``device`` (2 trials, tiny budget)."""
 
     def run(where: str) -> ActivePolicyIteration:
+        spec = RunSpec.of(
+            schedule=(3, 2), num_steps=MAX_STEPS, gamma=1.0, num_repeats=2, num_trials=2, seed=4
+        )
         api = ActivePolicyIteration(
+            spec,
             env=lambda e: BattingEnv(batch_size=e, seed=1),
-            selector=SamplingPolicySelector(
-                env=lambda e: BattingEnv(batch_size=e, seed=2), num_repeats=2
-            ),
+            selector=SamplingPolicySelector(env=lambda e: BattingEnv(batch_size=e, seed=2)),
             basis=make_basis(),
-            schedule=(3, 2),
-            num_steps=MAX_STEPS,
-            gamma=1.0,
-            num_trials=2,
-            seed=4,
             device=where,
         )
         api.run()
@@ -153,11 +156,18 @@ def test_figure8_example_on_device_gives_the_cpu_numbers(device, tmp_path):
                     )
 
 
-def test_device_argument_is_checked():
-    assert device_error("cpu") is None
-    assert "cpu or cuda" in device_error("no-such-device")
-    assert "cpu or cuda" in device_error("meta")
-    cuda = device_error("cuda")
-    assert (cuda is None) == torch.cuda.is_available()
-    if cuda is not None:
-        assert "no CUDA GPU" in cuda
+def test_device_argument_is_checked(tmp_path, capsys):
+    assert _check_device("cpu") == torch.device("cpu")
+    with pytest.raises(ValueError, match="device must name a torch device, got 'no-such-device'"):
+        _check_device("no-such-device")
+    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ValueError, match=f"torch sees {gpus} CUDA GPUs here"):
+        _check_device(f"cuda:{gpus}")
+    if gpus:
+        assert _check_device("cuda") == torch.device("cuda")
+    # the examples: a device torch cannot name is one line, exit 2, before any work
+    with pytest.raises(SystemExit) as stop:
+        chain_walk_api.main(["--device", "no-such-device", "--out-dir", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.startswith("error: ") and len(err.splitlines()) == 1
+    assert not (tmp_path / "x").exists()

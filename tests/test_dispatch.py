@@ -12,7 +12,7 @@ import torch
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.loop.iteration import ActivePolicyIteration
-from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.runs.dispatch import run_chunks, split_trials, trial_seeds
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
@@ -76,18 +76,17 @@ SEED = 7
 
 def _api(trials: list[int], seeds: list[int] | None) -> ActivePolicyIteration:
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    return ActivePolicyIteration(
-        env=lambda rows: ChainWalkEnv(batch_size=rows),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
-        selector=SamplingPolicySelector(num_repeats=2),
+        num_repeats=2,
         num_trials=len(trials),
         seed=SEED,
         trial_seeds=seeds,
     )
+    return ActivePolicyIteration(spec, env=lambda rows: ChainWalkEnv(batch_size=rows), basis=basis)
 
 
 def run_trials(trials: list[int]) -> dict:

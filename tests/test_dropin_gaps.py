@@ -17,6 +17,7 @@ from torch_api import (
     ActivePolicyIteration,
     GaussianActionBasis,
     LinearQPolicy,
+    RunSpec,
     SamplingPolicySelector,
     collect_episodes,
 )
@@ -91,14 +92,14 @@ def _last_candidate(moments, lam):  # a criterion that always prefers the last c
 def test_the_users_actor_is_an_extra_candidate_of_the_loop():
     env = GymEnv("CartPole-v1")
     actor = _actor(env)
+    spec = RunSpec.of(
+        schedule=(2, 2), num_steps=8, gamma=0.95, num_repeats=1, candidate_offsets=(0.0, 0.5)
+    )
     api = ActivePolicyIteration(
+        spec,
         env=env,
         basis=_basis(),
-        schedule=(2, 2),
-        num_steps=8,
-        gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1, criterion=_last_candidate),
-        candidate_offsets=(0.0, 0.5),
+        selector=SamplingPolicySelector(criterion=_last_candidate),
         extra_candidates=[actor],
     )
     history = api.run()
@@ -108,7 +109,10 @@ def test_the_users_actor_is_an_extra_candidate_of_the_loop():
     assert "sample_log_prob" in bought.keys() and bought.shape == (4, 8)
     with pytest.raises(ValueError, match="extra_candidates"):
         ActivePolicyIteration(
-            env=env, basis=_basis(), schedule=(1,), num_steps=4, gamma=0.9, extra_candidates=[actor]
+            RunSpec.of(schedule=(1,), num_steps=4, gamma=0.9, mode="passive"),
+            env=env,
+            basis=_basis(),
+            extra_candidates=[actor],
         )
 
 
@@ -121,15 +125,11 @@ def test_the_loops_collector_also_collects_the_reward_free_episodes():
         calls.append(num_episodes)
         return _whole_trajectories(6)(policy, num_episodes)
 
+    spec = RunSpec.of(
+        schedule=(2,), num_steps=6, gamma=0.95, num_repeats=1, candidate_offsets=(0.0, 0.5)
+    )
     api = ActivePolicyIteration(
-        env=GymEnv("CartPole-v1"),
-        basis=_basis(),
-        schedule=(2,),
-        num_steps=6,
-        gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1),
-        candidate_offsets=(0.0, 0.5),
-        collector=make_collector,
+        spec, env=GymEnv("CartPole-v1"), basis=_basis(), collector=make_collector
     )
     api.run()
     assert sorted(calls) == [2, 2, 2]  # K = 2 reward-free calls of Z·M = 2, one rewarded of M
@@ -147,12 +147,9 @@ def test_a_factory_capped_by_at_most_rows_never_builds_more_rows():
         return SerialEnv(rows, lambda: GymEnv("CartPole-v1"))
 
     api = ActivePolicyIteration(
+        RunSpec.of(schedule=(2, 2), num_steps=5, gamma=0.95, num_repeats=2),
         env=at_most_rows(rows_of_cartpole, 2),
         basis=_basis(),
-        schedule=(2, 2),
-        num_steps=5,
-        gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=2),
     )
     api.run()
     api.close()
@@ -167,16 +164,19 @@ def _actor_candidate_run(seed: int) -> list:
     env = GymEnv("CartPole-v1")
     actor = _actor(env)
     env.close()
-    api = ActivePolicyIteration(
-        env=lambda rows: SerialEnv(rows, lambda: GymEnv("CartPole-v1")),
-        basis=_basis(),
+    spec = RunSpec.of(
         schedule=(2, 1),
         num_steps=6,
         gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=2),
+        num_repeats=2,
         candidate_offsets=(0.0, 0.5),
-        extra_candidates=[actor],
         seed=seed,
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=lambda rows: SerialEnv(rows, lambda: GymEnv("CartPole-v1")),
+        basis=_basis(),
+        extra_candidates=[actor],
     )
     try:
         return [r.j_all for r in api.run()]

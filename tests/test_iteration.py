@@ -14,8 +14,10 @@ from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.core.design import build_design
 from torch_api.core.psi import PsiHat
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 
 LAM = 1e-3
 N = 10
@@ -35,24 +37,43 @@ def _basis() -> GaussianActionBasis:
 
 
 def _selector(**kwargs) -> SamplingPolicySelector:
-    return SamplingPolicySelector(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=12), num_repeats=2, **kwargs
-    )
+    return SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e, seed=12), **kwargs)
 
 
-def _api(*, mode="active", schedule=(3, 2), num_trials=None, seed=0, **kwargs):
-    return ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        basis=_basis(),
+def _api(
+    *,
+    mode="active",
+    schedule=(3, 2),
+    num_trials=None,
+    seed=0,
+    selector=None,
+    durable=None,
+    on_iteration=None,
+    **settings,
+):
+    """A chain-walk run; active: Z = 2 and the selector on its own env (``_selector()``) unless
+    one is given."""
+    spec = RunSpec.of(
         schedule=schedule,
         num_steps=N,
         gamma=GAMMA,
-        selector=_selector() if mode == "active" else kwargs.pop("selector", None),
         lam=LAM,
         psi_mode="grouped",
         num_trials=num_trials,
         seed=seed,
-        **kwargs,
+        mode=mode,
+        **({"num_repeats": 2} if mode == "active" else {}),
+        **settings,
+    )
+    if selector is None and mode == "active":
+        selector = _selector()
+    return ActivePolicyIteration(
+        spec,
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
+        basis=_basis(),
+        selector=selector,
+        durable=durable,
+        on_iteration=on_iteration,
     )
 
 
@@ -130,15 +151,11 @@ def test_passive_mode_never_calls_the_selector(monkeypatch):
 
     monkeypatch.setattr(SamplingPolicySelector, "select", refuse)
     monkeypatch.setattr(SamplingPolicySelector, "collect", refuse)
+    spec = RunSpec.of(
+        schedule=(3, 2), num_steps=N, gamma=GAMMA, psi_mode="grouped", num_trials=2, mode="passive"
+    )
     api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        basis=_basis(),
-        schedule=(3, 2),
-        num_steps=N,
-        gamma=GAMMA,
-        selector=None,
-        psi_mode="grouped",
-        num_trials=2,
+        spec, env=lambda e: ChainWalkEnv(batch_size=e, seed=11), basis=_basis(), selector=None
     )
     history = api.run()
     assert len(api.reward_free) == 0
@@ -155,7 +172,7 @@ def test_the_selector_passed_in_is_bound_not_changed():
     device, streams) in a copy: the object passed keeps its own settings and serves a second
     run exactly as the first."""
     selector = _selector()
-    first, second = (_api(selector=selector, mode=None, num_trials=2) for _ in range(2))
+    first, second = (_api(selector=selector, num_trials=2) for _ in range(2))
     assert first.mode == "active" and first.selector is not selector
     assert first.selector.psi is first.psi and first.selector.num_steps == N
     assert selector.psi is None and selector.num_steps is None and selector.generator is None
@@ -166,11 +183,11 @@ def test_the_selector_passed_in_is_bound_not_changed():
 def test_a_selector_with_the_loops_settings_is_refused():
     psi = PsiHat(basis=_basis(), gamma=GAMMA, mode="grouped")
     with pytest.raises(ValueError, match=r"selector: \['num_steps', 'psi'\] are the loop's"):
-        _api(selector=_selector(psi=psi, num_steps=N), mode=None)
+        _api(selector=_selector(psi=psi, num_steps=N))
     with pytest.raises(ValueError, match=r"selector: \['generator', 'num_episodes'\] are"):
-        _api(selector=_selector(num_episodes=3, generator=torch.Generator()), mode=None)
+        _api(selector=_selector(num_episodes=3, generator=torch.Generator()))
     with pytest.raises(ValueError, match="selector must be a SamplingPolicySelector or None"):
-        _api(selector="active", mode=None)
+        _api(selector="active")
 
 
 def test_batched_trials_shapes_and_counts():
@@ -208,17 +225,16 @@ def test_batched_trials_equal_one_at_a_time_runs_with_the_same_seeds():
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
 
     def run(seeds):
-        api = ActivePolicyIteration(
-            env=lambda e: ChainWalkEnv(batch_size=e),
-            basis=basis,
+        spec = RunSpec.of(
             schedule=(5, 3, 2),
             num_steps=10,
             gamma=GAMMA,
             psi_mode="grouped",
-            selector=SamplingPolicySelector(num_repeats=3),
+            num_repeats=3,
             num_trials=len(seeds),
             trial_seeds=seeds,
         )
+        api = ActivePolicyIteration(spec, env=lambda e: ChainWalkEnv(batch_size=e), basis=basis)
         api.run()
         return api
 
@@ -234,18 +250,17 @@ def test_batched_trials_equal_one_at_a_time_runs_with_the_same_seeds():
 
 def test_softmax_improvement_runs_with_softmax_candidates():
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
-    api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=10,
         gamma=GAMMA,
         psi_mode="grouped",
-        selector=SamplingPolicySelector(num_repeats=2),
+        num_repeats=2,
         num_trials=2,
         improvement="softmax",
         beta=0.5,
     )
+    api = ActivePolicyIteration(spec, env=lambda e: ChainWalkEnv(batch_size=e), basis=basis)
     history = api.run()
     assert api.policy.beta == 0.5 and api.policy.epsilon is None
     assert all(rule in (0.5, 1.0, 2.5, 10.0) for r in history for rule in r.sampling_rule)
@@ -256,15 +271,19 @@ def test_softmax_improvement_runs_with_softmax_candidates():
 def test_passive_run_whose_first_rewards_are_all_zero_still_explores(tie_break):
     """No reward seen: θ_1 = 0, every action ties. Split evenly, pi_2 is uniform and the next
     bought episodes try both actions; to the lowest index, PL would cock (go left) for ever."""
-    api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11, reward_profile=[0.0] * 10),
-        basis=_basis(),
+    spec = RunSpec.of(
         schedule=(3, 40),
         num_steps=N,
         gamma=GAMMA,
         psi_mode="grouped",
         num_trials=2,
         tie_break=tie_break,
+        mode="passive",
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11, reward_profile=[0.0] * 10),
+        basis=_basis(),
     )
     api.step()
     assert torch.equal(api.theta, torch.zeros_like(api.theta))
@@ -300,14 +319,11 @@ def test_rewarded_draws_do_not_depend_on_reward_free_collection(num_trials):
 
 
 def test_hooks_see_every_commit_and_every_iteration(tmp_path):
-    """``on_checkpoint`` after each commit (selection, episodes, record), ``on_iteration`` with
+    """``on_commit`` after each commit (selection, episodes, record), ``on_iteration`` with
     each record; the numbers are those of a run without hooks."""
-    commits, records = [], []
-    hooked = _api(
-        checkpoint_path=tmp_path / "run.db",
-        on_checkpoint=lambda api: commits.append(api.iteration),
-        on_iteration=records.append,
-    )
+    commits, records, hooked = [], [], None
+    durable = DurableRun(tmp_path / "run.db", on_commit=lambda: commits.append(hooked.iteration))
+    hooked = _api(durable=durable, on_iteration=records.append)
     history = hooked.run()
     plain = _api().run()
     assert records == history

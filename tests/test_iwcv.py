@@ -14,8 +14,10 @@ from torch_api.core.iwcv import check_flattening, choose_flattening
 from torch_api.core.psi import PsiHat
 from torch_api.core.solve import weighted_ridge
 from torch_api.core.weights import effective_sample_size
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.policies import LinearQPolicy
 
 LAM = 1e-3
@@ -87,20 +89,23 @@ def test_bad_flattening_settings_are_refused(flattening, grid, folds, message):
         check_flattening(flattening, grid, folds)
 
 
-def _api(flattening, **kwargs):
-    return ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        basis=_basis(),
+def _api(flattening, durable=None, **kwargs):
+    spec = RunSpec.of(
         schedule=(3, 3, 2),
         num_steps=10,
         gamma=GAMMA,
-        selector=SamplingPolicySelector(
-            env=lambda e: ChainWalkEnv(batch_size=e, seed=12), num_repeats=2
-        ),
+        num_repeats=2,
         lam=LAM,
         psi_mode="grouped",
         **({} if flattening is None else {"flattening": flattening}),
         **kwargs,
+    )
+    return ActivePolicyIteration(
+        spec,
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
+        basis=_basis(),
+        selector=SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e, seed=12)),
+        durable=durable,
     )
 
 
@@ -113,7 +118,7 @@ def test_nu_one_reproduces_the_unflattened_loop_to_the_bit():
 
 
 def test_iwcv_loop_records_nu_and_ess_per_trial_and_stores_the_setting(tmp_path):
-    api = _api("iwcv", num_trials=2, checkpoint_path=tmp_path / "run.db")
+    api = _api("iwcv", num_trials=2, durable=DurableRun(tmp_path / "run.db"))
     history = api.run()
     for record in history:
         assert len(record.flattening) == 2 and all(0 <= v <= 1 for v in record.flattening)
@@ -123,4 +128,4 @@ def test_iwcv_loop_records_nu_and_ess_per_trial_and_stores_the_setting(tmp_path)
         pairs = zip(record.effective_sample_size, record.rewarded_transitions, strict=True)
         assert all(0 < e <= n for e, n in pairs)
     with pytest.raises(Exception, match="flattening"):
-        _api(0.5, num_trials=2, checkpoint_path=tmp_path / "run.db", resume=True)
+        _api(0.5, num_trials=2, durable=DurableRun(tmp_path / "run.db", resume=True))

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import ast
-import importlib
 import re
-import sys
 from pathlib import Path
 
 import pytest
@@ -18,13 +16,14 @@ MAX_LINES = 400
 # beside them and imports only the base (collection uses its process lifetime, the loop its
 # store). torch_api/__init__.py, the public names, imports from all.
 LAYERS = {
-    "base": 0,  # torch_api/*.py: streams, _checks, _logging, _moved
+    "base": 0,  # torch_api/*.py: streams, _checks, _logging
     "data": 1,
     "runs": 1,
     "core": 2,
     "policies": 3,
     "collection": 4,
     "loop": 5,
+    "experiment": 6,
 }
 
 
@@ -101,21 +100,3 @@ def test_no_class_of_the_loop_is_a_mixin():
     from torch_api.loop.iteration import ActivePolicyIteration
 
     assert ActivePolicyIteration.__bases__ == (object,)
-
-
-def test_old_module_paths_warn_and_give_the_moved_module(monkeypatch):
-    import torch_api
-    import torch_api.core.solve
-    from torch_api._moved import MOVED
-
-    for old in MOVED:  # (forget an earlier import of the old path: each must warn here)
-        monkeypatch.delitem(sys.modules, old, raising=False)
-        monkeypatch.delattr(torch_api, old.split(".")[1], raising=False)
-    for old, new in MOVED.items():
-        with pytest.warns(DeprecationWarning, match=re.escape(new)):
-            module = importlib.import_module(old)
-        assert module is sys.modules[new]
-    assert sys.modules["torch_api.solve"] is torch_api.core.solve  # a monkeypatch reaches both
-    with pytest.warns(DeprecationWarning, match="torch_api.collection"):
-        from torch_api.data import collect_episodes
-    assert collect_episodes is torch_api.collect_episodes

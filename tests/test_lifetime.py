@@ -1,5 +1,6 @@
 """Worker processes die with their parent (torch_api/runs/lifetime.py), for real processes."""
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -82,3 +83,128 @@ def test_a_worker_started_after_its_parent_died_ends_at_once():
         timeout=60,
     )
     assert late.returncode == -signal.SIGKILL and "lived" not in late.stdout
+
+
+# -- every worker the library starts ends within 2 s of its parent's SIGKILL ---------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+SELECTOR_PARENT = """
+import sys
+import torch
+from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
+from torch_api.core.basis import GaussianActionBasis
+from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.policies import LinearQPolicy
+
+
+def chain_env(rows):  # top level: the workers unpickle it by name
+    return ChainWalkEnv(batch_size=rows)
+
+
+if __name__ == "__main__":
+    basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    candidates = [
+        LinearQPolicy(basis=basis, theta=torch.randn(2, 12), epsilon=0.5,
+                      generator=torch.Generator().manual_seed(k))
+        for k in range(3)
+    ]
+    selector = SamplingPolicySelector(
+        env=chain_env, num_episodes=100, num_steps=100, num_repeats=10, num_workers=2
+    )
+    print("collecting", flush=True)
+    while True:
+        selector.collect(candidates)
+"""
+CHUNKS_PARENT = """
+import time
+from torch_api.runs.dispatch import run_chunks
+
+
+def busy(chunk):  # top level: the workers unpickle it by name
+    end = time.monotonic() + 600
+    while time.monotonic() < end:
+        pass
+
+
+if __name__ == "__main__":
+    print("collecting", flush=True)
+    run_chunks(busy, [0, 1], backend="processes", workers=2)
+"""
+
+
+def _session(sid: int) -> list[int]:
+    """The live (not zombie) processes of session ``sid``: a parent started as a session's
+    leader and every process it started, whoever their parent is now."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _workers_left_after_killing(tmp_path: Path, code: str, delay: float) -> list[str]:
+    """Start ``code`` as the leader of a session of its own; SIGKILL it ``delay`` seconds after
+    its second worker process appears; the command lines of its processes still alive 2 s
+    later."""
+    script = tmp_path / "parent.py"
+    script.write_text(code)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    parent = subprocess.Popen(
+        [sys.executable, str(script)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert parent.stdout.readline().strip() == "collecting"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            workers = [
+                p
+                for p in _session(parent.pid)
+                if b"multiprocessing" in _cmdline(p) and b"resource_tracker" not in _cmdline(p)
+            ]
+            if len(workers) >= 2:
+                break
+            time.sleep(0.01)
+        else:
+            raise AssertionError("no worker process started")
+        time.sleep(delay)
+        parent.kill()
+        parent.wait(timeout=30)
+        time.sleep(2.0)
+        return [_cmdline(p).decode(errors="replace")[:120] for p in _session(parent.pid)]
+    finally:
+        for pid in _session(parent.pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
+    except OSError:
+        return b""
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+@pytest.mark.parametrize("delay", [0.0, 2.0], ids=["starting", "collecting"])
+def test_selector_workers_end_within_2s_of_their_parents_sigkill(tmp_path, delay):
+    """SamplingPolicySelector(num_workers=2) collecting in TorchRL's MultiSyncCollector,
+    its parent SIGKILLed as the workers start (importing torch, before any code of the
+    library runs in them) or while they collect: they stayed alive 5-30 s (until their
+    imports were done and they looked for their parent)."""
+    assert _workers_left_after_killing(tmp_path, SELECTOR_PARENT, delay) == []
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_chunk_workers_end_within_2s_of_their_parents_sigkill(tmp_path):
+    """run_chunks(backend="processes"): spawned pool workers, the parent SIGKILLed as they
+    start."""
+    assert _workers_left_after_killing(tmp_path, CHUNKS_PARENT, 0.0) == []

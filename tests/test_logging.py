@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from envs.chain_walk import CENTERS, TAU, ChainWalkEnv
-from torch_api import ActivePolicyIteration, GaussianActionBasis
+from torch_api import ActivePolicyIteration, GaussianActionBasis, RunSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTICE = "Initialized LazyTensorStorage"
@@ -89,15 +89,9 @@ def test_the_notices_show_when_torchrl_detail_is_asked_for():
 
 def test_the_loop_logs_each_iteration_on_the_torch_api_logger(caplog):
     basis = GaussianActionBasis(centers=torch.tensor(CENTERS)[:, None], tau=TAU, num_actions=2)
+    spec = RunSpec.of(schedule=(2, 1), num_steps=5, gamma=0.9, mode="passive", num_trials=1, seed=0)
     api = ActivePolicyIteration(
-        env=lambda rows: ChainWalkEnv(batch_size=rows, seed=0),
-        basis=basis,
-        schedule=(2, 1),
-        num_steps=5,
-        gamma=0.9,
-        selector=None,  # passive
-        num_trials=1,
-        seed=0,
+        spec, env=lambda rows: ChainWalkEnv(batch_size=rows, seed=0), basis=basis
     )
     with caplog.at_level(logging.INFO, logger="torch_api"):
         api.run()

@@ -14,6 +14,7 @@ from torch_api.core.lstd import lstd_j_values, phi_rows, weighted_lstd
 from torch_api.core.psi import PsiHat
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.policies import LinearQPolicy
 
 LAM = 1e-3
@@ -97,18 +98,20 @@ def test_lstd_j_refuses_a_grouped_psi_hat():
 
 
 def test_active_policy_iteration_with_lstd_fits_lstd_theta():
-    api = ActivePolicyIteration(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
-        selector=SamplingPolicySelector(
-            env=lambda e: ChainWalkEnv(batch_size=e, seed=12), num_repeats=2
-        ),
-        basis=_basis(),
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=10,
         gamma=GAMMA,
+        num_repeats=2,
         psi_mode="single",
         num_trials=2,
         fit="lstd",
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=lambda e: ChainWalkEnv(batch_size=e, seed=11),
+        selector=SamplingPolicySelector(env=lambda e: ChainWalkEnv(batch_size=e, seed=12)),
+        basis=_basis(),
     )
     api.step()
     evaluation_policy = api.policy  # pi_2, built from θ_1; refit θ_2 by hand after step 2
@@ -125,13 +128,9 @@ def test_active_policy_iteration_with_lstd_fits_lstd_theta():
     )
     torch.testing.assert_close(api.theta, expected)
     assert np.asarray(api.history[-1].j_mean).shape == (2, 4)
-    with pytest.raises(ValueError, match="fit='lstd' needs psi_mode='single'"):
-        ActivePolicyIteration(
-            env=lambda e: ChainWalkEnv(batch_size=e),
-            basis=_basis(),
-            schedule=(1,),
-            num_steps=10,
-            gamma=GAMMA,
-            psi_mode="grouped",
-            fit="lstd",
+    with pytest.raises(
+        ValueError, match="evaluation.fit='lstd' needs evaluation.psi_mode='single'"
+    ):
+        RunSpec.of(
+            schedule=(1,), num_steps=10, gamma=GAMMA, psi_mode="grouped", fit="lstd", mode="passive"
         )

@@ -14,6 +14,7 @@ from torch_api.core.basis import GaussianActionBasis
 from torch_api.core.psi import PsiHat
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.policies import LinearQPolicy
 
 
@@ -26,16 +27,20 @@ def chain_env(rows: int) -> ChainWalkEnv:
 
 
 def _batting_run(workers: int) -> tuple[list, torch.Tensor]:
-    api = ActivePolicyIteration(
-        env=batting_env,
-        selector=SamplingPolicySelector(env=batting_env, num_repeats=2, num_workers=workers),
-        basis=GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2),
+    spec = RunSpec.of(
         schedule=(2, 2),
         num_steps=10,
         gamma=1.0,
+        num_repeats=2,
         psi_mode="single",
         num_trials=3,
         seed=11,
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=batting_env,
+        selector=SamplingPolicySelector(env=batting_env, num_workers=workers),
+        basis=GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2),
     )
     history = api.run()
     return [(r.chosen, r.j_all) for r in history], api.theta

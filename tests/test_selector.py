@@ -151,7 +151,7 @@ def test_a_standalone_selector_names_what_it_lacks():
     """Built for a loop (no env, psi or N), used alone it says what to pass; its collection
     strategy is chosen when it is built (or bound), from env, num_workers and collector."""
     _, psi, pi = _setup()
-    for_loop = SamplingPolicySelector(num_repeats=2)
+    for_loop = SamplingPolicySelector()
     with pytest.raises(ValueError, match="the selector has no env"):
         for_loop.seed_env(4, 0)
     with pytest.raises(ValueError, match=r"the selector needs \['psi'\]"):
@@ -159,17 +159,21 @@ def test_a_standalone_selector_names_what_it_lacks():
     no_steps = SamplingPolicySelector(env=ChainWalkEnv(batch_size=2), psi=psi, num_episodes=1)
     with pytest.raises(ValueError, match=r"the selector needs \['num_steps'\]"):
         no_steps.select(pi, [pi])
-    bound = for_loop.bind(
-        env=lambda e: ChainWalkEnv(batch_size=e, seed=0),
-        psi=psi,
-        num_steps=5,
-        lam=LAM,
-        fit="brm",
-        device=None,
-    )
+    loops = {
+        "env": lambda e: ChainWalkEnv(batch_size=e, seed=0),
+        "psi": psi,
+        "num_steps": 5,
+        "num_repeats": 2,  # Z: the loop's (spec.selection.num_repeats)
+        "lam": LAM,
+        "fit": "brm",
+        "device": None,
+    }
+    bound = for_loop.bind(**loops)
     assert type(bound._collection).__name__ == "RolloutCollection"
     assert bound.collect([pi, pi.with_rule(epsilon=1.0)], num_episodes=3).shape == (2, 2, 3, 5)
     assert for_loop.psi is None and for_loop._collection is None  # the original is unchanged
+    with pytest.raises(ValueError, match=r"selector: \['num_repeats'\] are the loop's settings"):
+        SamplingPolicySelector(num_repeats=2).bind(**loops)  # Z is the loop's spec's
 
 
 @pytest.mark.parametrize("mode", ["grouped", "single"])

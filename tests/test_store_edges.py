@@ -1,6 +1,6 @@
 """The durable store at its edges, on real processes and real files: a kill or a signal while a
-store is being created, a write-ahead log cut short or flipped after a real kill, a signal that
-lands while a commit is open.
+store is being created, a killed writer's database cut short or flipped, a signal that lands
+while a commit is open.
 
 Each child is a real process forked from the test (it has torch loaded already, as a run has),
 killed by a real SIGKILL or stopped by a real SIGTERM; the attacks are those that
@@ -23,6 +23,7 @@ from torch_api.runs.store import CorruptRunError, RunStore
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from durability_attacks import (  # noqa: E402  (the attacks, counted there)
+    COMMITS,
     CONFIG,
     CREATED,
     episodes,
@@ -91,29 +92,31 @@ def _outcome(path: Path, commits: int) -> str:
         with RunStore(path, config=CONFIG, resume=True) as store:
             got = 0 if store.stored is None else store.stored.num_episodes
     except CorruptRunError as error:
-        return "refused" if "lost" in str(error) and str(path) in str(error) else str(error)
+        said = str(error)
+        return "refused" if "commits" in said and str(path) in said else said
     return "kept" if got == commits else f"silently {got} of {commits} rows"
 
 
-def test_a_write_ahead_log_cut_short_after_a_kill_is_refused_never_silently(tmp_path):
-    """The rows of a killed writer live in ``run.db-wal``; SQLite ends the log at its first
-    frame that fails a checksum. Cut or flipped anywhere: every row back, or a refusal that
-    says rows were lost (it dropped them, or discarded the whole run, without a word)."""
-    commits, path = 6, tmp_path / "killed" / "run.db"
-    killed_writer(path, commits)
-    wal = Path(f"{path}-wal").read_bytes()
+def test_a_killed_writers_database_cut_or_flipped_is_refused_never_silently(tmp_path):
+    """The rows of a killed writer lived in ``run.db-wal``, which SQLite ends at its first frame
+    that fails a checksum: cut or flipped, the run lost rows without a word. They now live in
+    ``run.db`` itself (a rollback journal; no log is left after a kill between commits). Cut
+    or flipped anywhere: every row back, or a refusal that names the commits."""
+    commits, path = COMMITS, tmp_path / "killed" / "run.db"
+    killed_writer(path, inside=False)
+    assert not Path(f"{path}-wal").exists() and not Path(f"{path}-journal").exists()
+    data = path.read_bytes()
     outcomes = {}
-    frame = 24 + 4096  # a frame: its 24-byte header, then one page
-    cuts = [32, len(wal) // 3, len(wal) - frame, len(wal) - 100]
+    cuts = [0, 100, len(data) // 3, len(data) - 4096, len(data) - 100]
     for i, cut in enumerate(cuts):
         copy = _copy(path, tmp_path / f"cut{i}")
-        Path(f"{copy}-wal").write_bytes(wal[:cut])
+        copy.write_bytes(data[:cut])
         outcomes[f"cut at {cut}"] = _outcome(copy, commits)
-    for i, offset in enumerate(range(40, len(wal), len(wal) // 9)):
+    for i, offset in enumerate(range(40, len(data), len(data) // 9)):
         copy = _copy(path, tmp_path / f"flip{i}")
-        damaged = bytearray(wal)
+        damaged = bytearray(data)
         damaged[offset] ^= 1 << (i % 8)
-        Path(f"{copy}-wal").write_bytes(bytes(damaged))
+        copy.write_bytes(bytes(damaged))
         outcomes[f"flip at {offset}"] = _outcome(copy, commits)
     bad = {k: v for k, v in outcomes.items() if v not in ("kept", "refused")}
     assert bad == {}

@@ -14,10 +14,12 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
 from torch_api import (
     ActivePolicyIteration,
+    DurableRun,
     EpisodeBuffer,
     GaussianActionBasis,
     LinearQPolicy,
     PsiHat,
+    RunSpec,
     SamplingPolicySelector,
     build_design,
     collect_episodes,
@@ -56,17 +58,16 @@ def applied_share(episodes) -> float:
 
 
 def test_one_hot_cartpole_records_the_applied_actions():
-    api = ActivePolicyIteration(
-        env=cartpole(),
-        basis=cartpole_basis(),
+    spec = RunSpec.of(
         schedule=(4, 3),
         num_steps=15,
         gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1),
+        num_repeats=1,
         candidate_offsets=(0.0, 0.5),
         psi_mode="single",
         seed=0,
     )
+    api = ActivePolicyIteration(spec, env=cartpole(), basis=cartpole_basis())
     api.run()
     assert applied_share(api.rewarded.episodes()) == 1.0
     assert applied_share(api.reward_free.episodes()) == 1.0
@@ -125,17 +126,18 @@ def test_exploration_types_and_the_global_generator():
 @pytest.mark.parametrize("factory", [cartpole_rows, cartpole_processes], ids=["serial", "parallel"])
 def test_batched_env_factories(factory):
     parallel = factory is cartpole_processes
-    api = ActivePolicyIteration(  # two trials: the env is built per batch size by the factory
-        env=factory,
-        basis=cartpole_basis(),
+    spec = RunSpec.of(
         schedule=(1,) if parallel else (2,),  # ParallelEnv: T·M = 2 worker processes
         num_steps=8,
         gamma=0.95,
-        selector=None if parallel else SamplingPolicySelector(num_repeats=1),
+        mode="passive" if parallel else "active",
+        **({} if parallel else {"num_repeats": 1}),
         candidate_offsets=(0.0, 0.5),
         num_trials=2,
         seed=0,
     )
+    # two trials: the env is built per batch size by the factory
+    api = ActivePolicyIteration(spec, env=factory, basis=cartpole_basis())
     try:
         api.run()
         assert applied_share(api.rewarded.episodes()) == 1.0
@@ -152,17 +154,16 @@ def test_frozen_lake_index_observations_with_grouped_psi_hat():
 
     centers = torch.tensor([[0.0], [5.0], [10.0], [15.0]])
     basis = GaussianActionBasis(centers=centers, tau=3.0, num_actions=4)
-    api = ActivePolicyIteration(
-        env=frozen_lake(),
-        basis=basis,
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=8,
         gamma=0.9,
-        selector=SamplingPolicySelector(num_repeats=1),
+        num_repeats=1,
         candidate_offsets=(0.0, 0.5),
         psi_mode="grouped",
         seed=0,
     )
+    api = ActivePolicyIteration(spec, env=frozen_lake(), basis=basis)
     api.run()
     assert torch.isfinite(api.theta).all()
     from torch_api import psi_hat, state_action_groups
@@ -300,16 +301,11 @@ def test_warm_start_from_collector_batches_of_an_actor():
     env = _short_cartpole()
     actor = _actor(env)
     batches = _collector_batches(env, actor, frames_per_batch=8, total_frames=16)
+    spec = RunSpec.of(
+        schedule=(2,), num_steps=8, gamma=0.95, num_repeats=1, candidate_offsets=(0.0, 0.5), seed=0
+    )
     api = ActivePolicyIteration(
-        env=cartpole(),
-        basis=cartpole_basis(),
-        schedule=(2,),
-        num_steps=8,
-        gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1),
-        candidate_offsets=(0.0, 0.5),
-        initial_episodes=batches,
-        seed=0,
+        spec, env=cartpole(), basis=cartpole_basis(), initial_episodes=batches
     )
     warm = len(api.rewarded)
     assert warm == len(set(torch.cat(batches)["collector", "traj_ids"].tolist()))
@@ -339,16 +335,20 @@ def _whole_trajectories(max_steps, *transforms):
 
 def test_iteration_and_selector_read_episodes_from_the_users_collector():
     torch.manual_seed(0)
-    api = ActivePolicyIteration(
-        env=cartpole(),
-        basis=cartpole_basis(),
+    spec = RunSpec.of(
         schedule=(3, 2),
         num_steps=10,
         gamma=0.95,
-        selector=SamplingPolicySelector(num_repeats=1, collector=_whole_trajectories(10)),
+        num_repeats=1,
         candidate_offsets=(0.0, 0.5),
-        collector=_whole_trajectories(10),
         seed=0,
+    )
+    api = ActivePolicyIteration(
+        spec,
+        env=cartpole(),
+        basis=cartpole_basis(),
+        selector=SamplingPolicySelector(collector=_whole_trajectories(10)),
+        collector=_whole_trajectories(10),
     )
     api.run()
     bought = api.rewarded.episodes()
@@ -394,15 +394,11 @@ def test_a_bad_reward_from_the_users_collector_keeps_the_valid_episodes(tmp_path
 
     def api(**kwargs):
         return ActivePolicyIteration(
+            RunSpec.of(schedule=(3, 2), num_steps=10, gamma=0.95, seed=0, mode="passive"),
             env=cartpole(),
             basis=cartpole_basis(),
-            schedule=(3, 2),
-            num_steps=10,
-            gamma=0.95,
             collector=_whole_trajectories(10, _NanInSecondEpisode),
-            seed=0,
-            checkpoint_path=path,
-            **kwargs,
+            durable=DurableRun(path, **kwargs),
         )
 
     _NanInSecondEpisode.broken = True

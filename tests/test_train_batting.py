@@ -1,268 +1,221 @@
-"""End-to-end runs of examples/train_batting.py with tiny budgets (subprocesses)."""
-
-from __future__ import annotations
+"""examples/train_batting.py end to end with tiny budgets: ``main(argv)`` in this process, and in
+a process of its own where that is the point (``--help`` where no source can be read, SIGINT)."""
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "examples" / "train_batting.py"
-DRIVER = ROOT / "tests" / "batting_driver.py"  # the script, stopped abruptly at the K-th commit
-TINY = ["--trials", "2", "--iterations", "2", "--episodes", "2", "--repeats", "2", "--seed", "3"]
-STEPS = 10  # N of the batting task
-MODES = ("active", "passive")
-INTERRUPTED = 3  # exit code of the driver when it stopped the run
-
 sys.path.insert(0, str(ROOT / "examples"))
-from _harness import read_results  # noqa: E402
-from _processes import children, running, start_example, wait_for_episodes  # noqa: E402
+import train_batting  # noqa: E402
+from _processes import start_example, wait_for_episodes  # noqa: E402
+
+from torch_api.experiment import read_results  # noqa: E402
+from torch_api.runs.store import RunStore  # noqa: E402
+
+TINY = ["--trials", "2", "--iterations", "2", "--episodes", "1", "--repeats", "2", "--seed", "3"]
+STEPS = 10  # N of the batting task
 
 
-def run_script(out_dir: Path, *extra: str, stop_after: int = 0) -> subprocess.CompletedProcess:
-    """The script with ``extra`` flags; ``stop_after`` > 0: ended after that many commits."""
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    command = [str(DRIVER), str(stop_after)] if stop_after else [str(SCRIPT)]
-    return subprocess.run(
-        [sys.executable, *command, *TINY, "--out-dir", str(out_dir), *extra],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+def run(out: Path, *extra: str) -> dict:
+    """The script's ``main`` on the tiny budget, writing into ``out``."""
+    return train_batting.main([*TINY, "--out-dir", str(out), *extra])
 
 
-def numbers(out_dir: Path) -> str:
-    """Everything a resumed run must reproduce exactly: every per-trial number (the CSV)."""
-    return (out_dir / "train_batting.csv").read_text()
+def refused(capsys, *argv: str, whole: bool = False) -> tuple[int, str]:
+    """The exit status of a refused command line and the last line of its standard error (all
+    of it with ``whole``; a ``SystemExit("error: ...")`` is printed by the interpreter, exit 1)."""
+    with pytest.raises(SystemExit) as stop:
+        train_batting.main(list(argv))
+    code, err = stop.value.code, capsys.readouterr().err
+    if isinstance(code, str):
+        code, err = 1, err + code
+    assert "Traceback" not in err
+    return code, err if whole else err.strip().splitlines()[-1]
+
+
+def numbers(out: Path) -> str:
+    """Every per-trial number of a run (the CSV): what a resumed or chunked run must repeat."""
+    return (out / "train_batting.csv").read_text()
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+def uninterrupted(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("uninterrupted")
-    return out, run_script(out)
+    run(out)
+    return out
 
 
-def test_outputs_exist_and_rewards_match_schedule(uninterrupted):
-    out, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "paired t-test AL vs PL at iteration 2" in proc.stdout
-    payload = json.loads((out / "train_batting.json").read_text())
+def test_a_tiny_run_writes_every_number_and_buys_its_schedule(uninterrupted):
+    payload = json.loads((uninterrupted / "train_batting.json").read_text())
     assert set(payload["summary"]["decreasing"]["runs"]) == {"AL", "PL"}
-    results = read_results(out / "train_batting.csv")
+    assert payload["args"]["repeats"] == 2 and payload["args"]["execution"]["chunks"] == 1
+    results = read_results(uninterrupted / "train_batting.csv")
     for method in ("AL", "PL"):
-        run = {(i, m): v for (s, me, i, m), v in results.items() if me == method}
-        assert [run[i, "episodes_bought"] for i in (1, 2)] == [[2, 2], [2, 2]]
-        # per trial, cumulative
-        assert [run[i, "rewarded_transitions"] for i in (1, 2)] == [[20, 20], [40, 40]]
+        got = {(i, m): v for (_, me, i, m), v in results.items() if me == method}
+        assert [got[i, "episodes_bought"] for i in (1, 2)] == [[1, 1], [1, 1]]
+        assert [got[i, "rewarded_transitions"] for i in (1, 2)] == [[10, 10], [20, 20]]
         for i in (1, 2):
-            assert len(run[i, "performance"]) == 2
-            assert all(math.isfinite(x) and x >= 0 for x in run[i, "performance"])
-            assert run[i, "flattening"] == [1.0, 1.0]  # the paper's weights by default
-        j = [run.get((i, f"j_mean_k{k}")) for i in (1, 2) for k in range(1, 5)]
-        if method == "AL":
-            assert all(len(v) == 2 and all(math.isfinite(x) and x >= 0 for x in v) for v in j)
-            free = [run[i, "reward_free_transitions"][0] for i in (1, 2)]
-            assert free == [2 * 4 * 2 * STEPS, 2 * 2 * 4 * 2 * STEPS]
+            assert all(math.isfinite(x) and x >= 0 for x in got[i, "performance"])
+            assert got[i, "flattening"] == [1.0, 1.0]  # the paper's weights by default
+        j = [got.get((i, f"j_mean_k{k}")) for i in (1, 2) for k in range(1, 5)]
+        if method == "AL":  # Z·K·M·N reward-free transitions per trial and iteration
+            assert all(len(v) == 2 and all(math.isfinite(x) for x in v) for v in j)
+            assert [got[i, "reward_free_transitions"][0] for i in (1, 2)] == [80, 160]
         else:
-            assert [run[i, "chosen"] for i in (1, 2)] == [[0, 0], [0, 0]] and j == [None] * 8
-    rows = (out / "train_batting.csv").read_text().splitlines()
+            assert [got[i, "chosen"] for i in (1, 2)] == [[0, 0], [0, 0]] and j == [None] * 8
+    rows = numbers(uninterrupted).splitlines()
     assert rows[0] == "schedule,method,seed,iteration,trial,measure,value"
     assert len(rows) - 1 == sum(len(v) for v in results.values())
-    assert (out / "fig10_performance.png").stat().st_size > 1000
-
-
-def test_interrupted_and_resumed_run_matches(uninterrupted, tmp_path):
-    reference, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    # Stop right after the AL run bought its second batch (commits: selection, episodes,
-    # iteration; selection, episodes).
-    first = run_script(tmp_path, stop_after=5)
-    assert first.returncode == INTERRUPTED, first.stderr[-3000:]
-    assert not (tmp_path / "train_batting.json").exists()
-    # Resume: AL fits iteration 2 without buying again (1), PL selects (2), buys (3) and fits
-    # (4), stop.
-    second = run_script(tmp_path, "--resume", stop_after=4)
-    assert second.returncode == INTERRUPTED, second.stderr[-3000:]
-    assert "decreasing_active.db at iteration 1/2" in second.stdout
-    # Resume again: AL is complete and is not recomputed; PL continues from iteration 1.
-    third = run_script(tmp_path, "--resume")
-    assert third.returncode == 0, third.stderr[-3000:]
-    assert "decreasing_active.db at iteration 2/2" in third.stdout
-    assert "decreasing_passive.db at iteration 1/2" in third.stdout
-    expected = numbers(reference)
-    resumed = numbers(tmp_path)
-    assert resumed == expected
-    bought = read_results(tmp_path / "train_batting.csv")  # no rewarded episode bought twice
-    for method in ("AL", "PL"):
-        assert bought["decreasing", method, 2, "rewarded_transitions"] == [(2 + 2) * STEPS] * 2
-
-
-def test_chunked_run_gives_the_same_numbers(uninterrupted, tmp_path):
-    """Two chunks of one trial each: per-chunk checkpoints, the numbers of one batch of two."""
-    reference, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    chunked = run_script(tmp_path, "--chunks", "2")
-    assert chunked.returncode == 0, chunked.stderr[-3000:]
-    names = sorted(p.name for p in (tmp_path / "checkpoints").glob("*.db"))
-    expected_names = [f"decreasing_{m}_chunk{c}of2.db" for m in MODES for c in (1, 2)]
-    assert names == expected_names
-    expected = numbers(reference)
-    assert numbers(tmp_path) == expected
-
-
-def test_chunked_run_resumes_per_chunk(uninterrupted, tmp_path):
-    reference, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    # Commits: AL chunk 1 selects, buys, fits, selects, buys (5); stop. Resume: chunk 1
-    # continues, chunk 2 anew.
-    first = run_script(tmp_path, "--chunks", "2", stop_after=5)
-    assert first.returncode == INTERRUPTED, first.stderr[-3000:]
-    second = run_script(tmp_path, "--chunks", "2", "--resume")
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert "decreasing_active_chunk1of2.db at iteration 1/2" in second.stdout
-    assert "nothing stored in" in second.stdout  # chunk 2 had not started: it starts fresh
-    assert "decreasing_active_chunk2of2.db: starting it fresh" in second.stdout
-    expected = numbers(reference)
-    assert numbers(tmp_path) == expected
-
-
-def test_worker_processes_give_the_same_numbers_and_count_the_physics(uninterrupted, tmp_path):
-    """--backend processes: chunks in two worker processes, the numbers of one batch; every
-    run's physics steps counted (and, with --physics-audit, sampled without changing a thing)."""
-    reference, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    flags = ("--backend", "processes", "--workers", "2", "--chunks", "2", "--physics-audit", "0.5")
-    done = run_script(tmp_path, *flags)
-    assert done.returncode == 0, done.stderr[-3000:]
-    expected = json.loads((reference / "train_batting.json").read_text())
-    payload = json.loads((tmp_path / "train_batting.json").read_text())
-    assert numbers(tmp_path) == numbers(reference)
-    assert payload["physics_steps"] == expected["physics_steps"]
+    assert (uninterrupted / "fig10_performance.png").read_bytes()[:4] == b"\x89PNG"
+    steps = payload["physics_steps"]
     runs = payload["summary"]["decreasing"]["runs"].values()
-    for kind in ("coarse", "fine"):
-        assert payload["physics_steps"][kind] == sum(r["physics_steps"][kind] for r in runs)
-    assert payload["physics_steps"]["coarse"] > 0
-
-
-def test_a_folder_with_stored_runs_is_refused_without_resume_or_overwrite(tmp_path):
-    first = run_script(tmp_path, stop_after=2)  # iteration 1 bought
-    assert first.returncode == INTERRUPTED
-    stored = (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes()
-    again = run_script(tmp_path)
-    assert again.returncode == 1
-    assert "runs are stored already" in again.stderr and "--resume" in again.stderr
-    assert len(again.stderr.strip().splitlines()) == 1
-    assert (tmp_path / "checkpoints" / "decreasing_active.db").read_bytes() == stored
-    both = run_script(tmp_path, "--resume", "--overwrite")
-    assert both.returncode == 2 and "exclude each other" in both.stderr
-    fresh = run_script(tmp_path, "--overwrite", stop_after=1)  # a selection
-    assert fresh.returncode == INTERRUPTED, fresh.stderr[-3000:]
-    from torch_api.runs.store import RunStore
-
-    assert RunStore.read(tmp_path / "checkpoints" / "decreasing_active.db").episodes == {}
-
-
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to find the workers")
-def test_sigkill_then_sigterm_then_resume_and_workers_die_with_a_killed_parent(
-    uninterrupted, tmp_path
-):
-    """A SIGKILL mid-run, then a resume stopped by SIGTERM (the commit in flight completes, one
-    line, exit 143), then a resume to the end: the uninterrupted run's numbers. SIGKILL of the
-    parent with --backend processes: its workers are gone within seconds."""
-    reference, proc = uninterrupted
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    store = tmp_path / "checkpoints" / "decreasing_active.db"
-
-    def start(*extra):
-        return start_example("train_batting.py", *TINY, "--out-dir", str(tmp_path), *extra)
-
-    def once_storing(proc, seconds):
-        """Until ``proc`` holds the run's lock (its pid is in the lock file), then seconds."""
-        lock = Path(f"{store}.lock")
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and proc.poll() is None:
-            if lock.exists() and f"pid {proc.pid} " in lock.read_text():
-                break
-            time.sleep(0.05)
-        time.sleep(seconds)
-
-    killed = start()
-    wait_for_episodes(store, 1, killed)  # iteration 1's rewards committed, iteration 2 to come
-    killed.kill()
-    killed.communicate(timeout=60)
-    stopped = start("--resume")
-    # At once: the tiny resumed run can end within a second on an idle machine, and a SIGTERM
-    # after main() has restored the default handlers would kill it silently (exit -15).
-    once_storing(stopped, 0.1)
-    stopped.send_signal(signal.SIGTERM)
-    _, err = stopped.communicate(timeout=120)
-    assert stopped.returncode == 128 + signal.SIGTERM, err[-3000:]
-    last = err.strip().splitlines()[-1]  # (after the progress bars)
-    assert "Traceback" not in err and last.startswith("interrupted at iteration "), err[-3000:]
-    assert last.endswith(f"episodes stored in {tmp_path / 'checkpoints'}; continue with --resume")
-    done = run_script(tmp_path, "--resume")
-    assert done.returncode == 0, done.stderr[-3000:]
-    expected = numbers(reference)
-    assert numbers(tmp_path) == expected
-
-    out = tmp_path / "processes"
-    parent = subprocess.Popen(
-        [
-            sys.executable,
-            str(SCRIPT),
-            *TINY,
-            "--out-dir",
-            str(out),
-            "--backend",
-            "processes",
-            "--workers",
-            "2",
-            "--chunks",
-            "2",
-        ],
-        env=env,
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+    assert steps["coarse"] > 0 and all(
+        steps[k] == sum(r["physics_steps"][k] for r in runs) for k in steps
     )
-    deadline = time.monotonic() + 120
-    while not list((out / "checkpoints").glob("*.db")) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    workers = [k for k in children(parent.pid) if running(k)]
-    assert workers, "no worker processes found"
-    parent.kill()
-    parent.wait(timeout=30)
-    deadline = time.monotonic() + 60  # (a worker still importing torch dies once it is done)
-    while any(running(w) for w in workers) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not any(running(w) for w in workers), "workers outlived their killed parent"
 
 
-def test_beyond_the_paper_variant_runs_and_bad_widths_are_refused(tmp_path):
-    """Scaled basis, episodes that end at the hit (fewer transitions bought), LSTD-Q and ν
-    chosen by IWCV (recorded per trial and iteration in the CSV)."""
-    widths = ("--basis-widths", "0.785,3.14,0.785,3.14")
-    proc = run_script(tmp_path, *widths, "--end-at-hit", "--fit", "lstd", "--flattening", "iwcv")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "Found (2 trials" in proc.stdout and "--trials 500 --schedule both" in proc.stdout
-    assert "no measured ceiling for this basis and learner" in proc.stdout
-    assert "paper-basis ceiling" not in proc.stdout  # measured for the paper's learner only
+def test_chunks_in_worker_processes_give_the_same_numbers(uninterrupted, tmp_path):
+    """Two chunks of one trial each in two worker processes, their physics sampled by the
+    audit: the numbers and the physics steps of one batch of two trials."""
+    flags = ("--chunks", "2", "--backend", "processes", "--workers", "2", "--physics-audit", "0.5")
+    payload = run(tmp_path, *flags)
+    names = sorted(p.name for p in (tmp_path / "checkpoints").glob("*.db"))
+    assert names == [f"decreasing_{m}_chunk{c}of2.db" for m in ("AL", "PL") for c in (1, 2)]
+    assert numbers(tmp_path) == numbers(uninterrupted)
+    expected = json.loads((uninterrupted / "train_batting.json").read_text())["physics_steps"]
+    assert payload["physics_steps"] == expected
+    assert payload["physics_audit"].sampled_steps("coarse") > 0
+
+
+def test_the_beyond_the_paper_learner_runs(tmp_path):
+    """Per-dimension widths, episodes that end at the hit (fewer transitions bought), LSTD-Q
+    and ν chosen by importance-weighted cross-validation (recorded per trial and iteration)."""
+    widths = ("--basis-widths", "0.785", "3.14", "0.785", "3.14")
+    run(tmp_path, *widths, "--end-at-hit", "--fit", "lstd", "--flattening", "iwcv")
     bought = read_results(tmp_path / "train_batting.csv")
     for method in ("AL", "PL"):
-        assert max(bought["decreasing", method, 2, "rewarded_transitions"]) <= 4 * STEPS
+        assert max(bought["decreasing", method, 2, "rewarded_transitions"]) <= 2 * STEPS
         for it in (1, 2):
             assert set(bought["decreasing", method, it, "flattening"]) <= {0, 0.25, 0.5, 0.75, 1}
-    bad = run_script(tmp_path / "bad", "--basis-widths", "1,2,3")
-    assert bad.returncode == 2 and "--basis-widths must be four positive numbers" in bad.stderr
-    bad = run_script(tmp_path / "bad", "--flattening", "1.5")
-    assert bad.returncode == 2 and "--flattening must lie in [0, 1], got 1.5" in bad.stderr
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--lam", "-1"], "error: evaluation.lam must be >= 1e-10"),
+        (["--trials", "0"], "error: trials.num_trials must be >= 1, got 0"),
+        (["--iterations", "8"], "error: iterations must lie in 1..7, got 8"),
+        (["--flattening", "1.5"], "error: evaluation.flattening must be 'iwcv' or lie in [0, 1]"),
+        (["--basis-widths", "1", "2", "3", "-4"], "error: widths must be finite numbers > 0"),
+        (["--physics-audit", "2"], "error: fraction must lie in [0, 1], got 2.0"),
+        (["--trials", "2", "--chunks", "3"], "error: chunks must lie in 1..2 (the trials), got 3"),
+        (["--device", "gpu"], "error: "),
+        (["--device", "cuda:99"], "error: device 'cuda:99': torch sees"),
+    ],
+)
+def test_a_bad_value_is_one_line_naming_it_exit_2(capsys, tmp_path, flags, message):
+    code, err = refused(capsys, *flags, "--out-dir", str(tmp_path / "never"))
+    assert code == 2 and err.startswith(message), err
+    assert not (tmp_path / "never" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "words"),
+    [
+        (["--repeats", "2.5"], "--repeats"),
+        (["--schedule", "sometimes"], "--schedule"),
+        (["--resume", "--overwrite"], "resume and overwrite exclude each other"),
+        (["--backend", "local", "--workers", "2"], "workers applies to backend 'processes'"),
+        (["--no-such-flag"], "--no-such-flag"),
+    ],
+)
+def test_what_the_command_line_parser_refuses_exits_2_naming_it(capsys, flags, words):
+    code, err = refused(capsys, *flags, whole=True)
+    assert code == 2 and words in err, err
+
+
+def test_an_unwritable_output_folder_is_one_line_before_any_work(capsys, tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    code, err = refused(capsys, "--out-dir", str(blocker / "x"))
+    assert code == 2 and err.startswith("error: ") and "a-file" in err, err
+
+
+def test_a_folder_with_results_is_refused_without_resume_or_overwrite(capsys, uninterrupted):
+    before = numbers(uninterrupted)
+    code, err = refused(capsys, *TINY, "--out-dir", str(uninterrupted))
+    assert code == 1 and err.startswith("error: runs are stored already") and "--overwrite" in err
+    code, err = refused(capsys, *TINY, "--lam", "0.01", "--resume", "--out-dir", str(uninterrupted))
+    assert code == 1 and "--lam 0.001, not 0.01" in err, err
+    assert numbers(uninterrupted) == before
+
+
+def test_help_answers_in_a_process_where_no_source_can_be_read(tmp_path):
+    """Under ``python -m cProfile`` the script's classes have no source: tyro parses without
+    the field docstrings; in this process ``--help`` shows them."""
+    command = [sys.executable, "-m", "cProfile", "-o", str(tmp_path / "profile")]
+    done = subprocess.run(
+        [*command, str(ROOT / "examples" / "train_batting.py"), "--help"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert all(flag in done.stdout for flag in ("--out-dir", "--resume", "--lam", "--backend"))
+
+
+def test_help_shows_every_field_s_docstring(capsys):
+    with pytest.raises(SystemExit) as stop:
+        train_batting.main(["--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    assert stop.value.code == 0 and "Z, J-values averaged into J'" in shown
+    assert "--out-dir" in shown and "--execution.out-dir" not in shown  # flattened
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="SIGINT of a process of its own")
+def test_interrupted_run_resumes_to_the_same_numbers_and_buys_nothing_twice(
+    uninterrupted, tmp_path, capsys
+):
+    """SIGINT mid-run: the commit in flight completes, one line, exit 130. A resume with other
+    settings is refused naming the field; a resume gives the uninterrupted run's numbers, and
+    resuming the finished run buys nothing again."""
+    store = tmp_path / "checkpoints" / "decreasing_AL.db"
+    proc = start_example("train_batting.py", *TINY, "--out-dir", str(tmp_path))
+    wait_for_episodes(store, 1, proc)  # iteration 1's rewards committed
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGINT, err[-3000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("interrupted at iteration ") and last.endswith("continue with --resume")
+    assert "Traceback" not in err and not (tmp_path / "train_batting.json").exists()
+
+    changed = (("--lam", "0.01", "evaluation.lam"), ("--repeats", "3", "selection.num_repeats"))
+    for flag, value, field in changed:
+        code, err = refused(capsys, *TINY, flag, value, "--resume", "--out-dir", str(tmp_path))
+        assert code == 1 and err.startswith("error: the run stored in") and field in err, err
+
+    run(tmp_path, "--resume")
+    assert numbers(tmp_path) == numbers(uninterrupted)
+    stored = {p.name: RunStore.read(p).num_episodes for p in store.parent.glob("*.db")}
+    capsys.readouterr()
+    run(tmp_path, "--resume")  # the finished run again: nothing to buy
+    assert capsys.readouterr().out.count("at iteration 2/2") == 2
+    assert {p.name: RunStore.read(p).num_episodes for p in store.parent.glob("*.db")} == stored
+    assert numbers(tmp_path) == numbers(uninterrupted)
+
+
+def test_the_paper_size_run_is_quoted_from_its_results_for_this_setting_only(
+    uninterrupted, monkeypatch
+):
+    """The stored paper-size run (here the tiny run's JSON) is quoted for a run of the same
+    settings whatever its trial count; a run of other settings gets the command instead."""
+    monkeypatch.setattr(train_batting, "PAPER_RUN", uninterrupted / "train_batting.json")
+    same = train_batting.Args(trials=500, seed=3, iterations=2, episodes=1, repeats=2)
+    quoted = train_batting.paper_run(same, "decreasing")
+    assert quoted.startswith("decreasing, 2 trials (") and "AL − PL" in quoted, quoted
+    other = train_batting.paper_run(train_batting.Args(seed=3), "decreasing")
+    assert other.endswith(train_batting.PAPER_SIZE)

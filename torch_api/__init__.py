@@ -24,7 +24,6 @@ What a user extends, each with a runnable example in its docstring (docs/archite
 import logging
 from importlib.metadata import PackageNotFoundError, version
 
-from torch_api import _moved
 from torch_api.collection import at_most_rows, collect_episodes
 from torch_api.core.basis import GaussianActionBasis
 from torch_api.core.criterion import Criterion, PooledMoments, j_eq46, pooled_moments
@@ -34,8 +33,17 @@ from torch_api.core.solve import j_criterion, weighted_moment, weighted_ridge
 from torch_api.core.weights import per_decision_weights
 from torch_api.data import EpisodeBuffer, as_episodes, pad_steps
 from torch_api.data.actions import ActionEncoding
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration, IterationRecord
 from torch_api.loop.selector import SamplingPolicySelector, j_values
+from torch_api.loop.spec import (
+    EvaluationSpec,
+    PolicySpec,
+    RewardedSpec,
+    RunSpec,
+    SelectionSpec,
+    TrialSpec,
+)
 from torch_api.policies import (
     ActionProbsPolicy,
     LinearQPolicy,
@@ -46,8 +54,6 @@ from torch_api.policies import (
     softmax_probs,
 )
 from torch_api.streams import BlockSeeded, TrialStreams, seed_env
-
-_moved.install()  # the flat layout's module paths, for one release (torch_api/_moved.py)
 
 try:
     __version__ = version("torch-api")
@@ -63,14 +69,21 @@ __all__ = [
     "ActivePolicyIteration",
     "BlockSeeded",
     "Criterion",
+    "DurableRun",
     "EpisodeBuffer",
+    "EvaluationSpec",
     "GaussianActionBasis",
     "IterationRecord",
     "LinearQPolicy",
+    "PolicySpec",
     "PooledMoments",
     "PsiHat",
+    "RewardedSpec",
+    "RunSpec",
     "SamplingPolicySelector",
+    "SelectionSpec",
     "TabularPolicy",
+    "TrialSpec",
     "TrialStreams",
     "as_episodes",
     "build_design",

@@ -105,3 +105,14 @@ def _check_device(device) -> torch.device:
         if count == 0 or (device.index or 0) >= count:
             raise ValueError(f"device {str(device)!r}: torch sees {count} CUDA GPUs here")
     return device
+
+
+def _check_not_meta(name: str, *tensors: torch.Tensor) -> None:
+    """Refuse tensors on the ``meta`` device (shapes without values): every check of their
+    values would fail inside torch with ``Tensor.item() cannot be called on meta tensors``."""
+    for tensor in tensors:
+        if isinstance(tensor, torch.Tensor) and tensor.device.type == "meta":
+            raise ValueError(
+                f"{name} is on the meta device (a shape without values, "
+                f"{tuple(tensor.shape)}): give real tensors, e.g. on 'cpu' or 'cuda'"
+            )

@@ -66,7 +66,13 @@ class EnvPerBatch:
         if not self.is_factory:
             return self.env
         if batch not in self._built:
-            self._built[batch] = self.env(batch)
+            env = self.env(batch)
+            if not isinstance(env, EnvBase):
+                raise ValueError(
+                    f"env factory returned {'None' if env is None else type(env).__name__}, "
+                    f"expected a TorchRL EnvBase (asked for a batch of {batch} rows)"
+                )
+            self._built[batch] = env
         return self._built[batch]
 
     def close(self) -> None:
@@ -223,7 +229,8 @@ def collect_with_collector(
         TensorDict ``[M, N]`` in the format of this module's docstring.
 
     Raises:
-        ValueError: an episode longer than ``num_steps``, or actions outside the spec.
+        ValueError: an episode longer than ``num_steps`` (at the first batch that holds one,
+            before any episode is used), or actions outside the spec.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
@@ -239,11 +246,12 @@ def collect_with_collector(
         row_spec = row_spec[0]  # the spec of one env row
     buffer = EpisodeBuffer(rewarded=rewarded, capacity=16 * num_episodes + 64)
     try:
-        for batch in collector:
+        for count, batch in enumerate(collector, start=1):
             if row_spec is not None:  # the batch's first step is always a real one
                 first = batch["action"].reshape(-1, *row_spec.shape)[0]
                 check_actions(row_spec, first, who=f"the collector's policy {_name(policy)}")
             buffer.extend(batch, validate=validate)
+            _check_step_cap(buffer, num_steps, count)
             if len(buffer.whole()) >= num_episodes:
                 break
     finally:
@@ -256,13 +264,7 @@ def collect_with_collector(
             f"the collector ended after {len(closed)} whole episodes, {num_episodes} were asked for"
         )
     episodes = buffer.episodes()[torch.tensor(closed[:num_episodes])]
-    if episodes.shape[-1] > num_steps:
-        longest = int(episodes["mask"].sum(-1).max())
-        if longest > num_steps:
-            raise ValueError(
-                f"the collector gave an episode of {longest} steps, more than num_steps = "
-                f"{num_steps} (end its env's episodes there, e.g. StepCounter(max_steps=...))"
-            )
+    if episodes.shape[-1] > num_steps:  # (padding only: longer episodes were refused)
         episodes = episodes[..., :num_steps]
     episodes = pad_steps(episodes, num_steps)
     episodes["iteration"] = torch.full(episodes.shape, iteration, dtype=torch.long)
@@ -270,6 +272,22 @@ def collect_with_collector(
     if validate:
         validate_episodes(episodes, rewarded=rewarded)
     return episodes
+
+
+def _check_step_cap(buffer: EpisodeBuffer, num_steps: int, batch: int) -> None:
+    """Refuse, at the batch that shows it, a collector whose episodes run past ``num_steps``
+    (an env without a step cap): before the run reads, or pays for, any of its episodes.
+    A trajectory cut at a batch's end counts with the part held so far."""
+    if buffer.steps is None or buffer.steps <= num_steps:  # (padded length: no real step more)
+        return
+    longest = buffer.longest_episode()
+    if longest > num_steps:
+        raise ValueError(
+            f"the collector gave an episode of {longest} steps in its batch {batch}, more than "
+            f"num_steps = {num_steps}: its env does not end episodes there (add "
+            "StepCounter(max_steps=num_steps) to the env, or give the Collector "
+            "max_frames_per_traj=num_steps)"
+        )
 
 
 def rollouts_or(collector: Callable | None) -> Callable:

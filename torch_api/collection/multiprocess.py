@@ -15,6 +15,9 @@ trial, iteration, role)).
 Without per-trial streams each worker gets a stream keyed from the policy's (one draw per
 worker): reproducible, but not the numbers of one process.
 
+The workers die with the calling process: a SIGKILL of it ends them within a fraction of a
+second, even while they still import torch (:mod:`torch_api.runs.lifetime`).
+
 Worth it only when collection takes much longer than starting W processes (seconds: each
 imports torch, TorchRL and the environment); an environment that already steps its rows in
 native threads (the batting arm's ``mujoco.batch``) gains nothing
@@ -39,7 +42,7 @@ from torch_api.data.actions import ActionEncoding
 from torch_api.data.buffer import validate_episodes
 from torch_api.data.episodes import _episodes_from_rollout
 from torch_api.policies.base import param_dims_of
-from torch_api.runs.lifetime import die_with_parent
+from torch_api.runs.lifetime import die_with_parent, workers_die_with_this_process
 from torch_api.streams import seed_env, spawn_seed
 
 __all__ = ["collect_episodes_in_workers"]
@@ -170,21 +173,24 @@ def collect_episodes_in_workers(
         policy_factories.append(_WorkerPolicy(piece, seed))
         block_seeds = None if env_block_seeds is None else env_block_seeds[part.start : part.stop]
         env_factories.append(_WorkerEnv(make_env, len(part) * per_block, env_seed + w, block_seeds))
-    collector = MultiSyncCollector(
-        env_factories,
-        policy_factory=policy_factories,
-        frames_per_batch=[len(part) * per_block * num_steps for part in parts],
-        total_frames=rows * num_steps,
-        # one batch: the collector's first reset is the env's first after seeding, as in
-        # env.rollout (a second reset would draw other initial states from the env's streams)
-        reset_at_each_iter=False,
-        cat_results=0,
-        trust_policy=True,
-    )
-    try:
-        batch = next(iter(collector))
-    finally:
-        collector.shutdown()
+    # the workers die with this process, even while they still import torch
+    with workers_die_with_this_process():
+        collector = MultiSyncCollector(
+            env_factories,
+            policy_factory=policy_factories,
+            frames_per_batch=[len(part) * per_block * num_steps for part in parts],
+            total_frames=rows * num_steps,
+            # one batch: the collector's first reset is the env's first after seeding, as in
+            # env.rollout (a second reset would draw other initial states from the env's
+            # streams)
+            reset_at_each_iter=False,
+            cat_results=0,
+            trust_policy=True,
+        )
+        try:
+            batch = next(iter(collector))
+        finally:
+            collector.shutdown()
     batch = batch.reshape(rows, num_steps)
     episodes = _episodes_from_rollout(batch, rewarded=rewarded)
     episodes = episodes.reshape(*trial_dims, num_episodes, num_steps)

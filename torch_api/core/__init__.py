@@ -2,6 +2,7 @@
 
 ===================================== =====================================================
 :mod:`torch_api.core.basis`           phi(s, a), Gaussian kernels × actions (eq. 9-10, 50, 64)
+:mod:`torch_api.core.quadratic_basis` phi(s, a) = e_a ⊗ [1, s, s_i s_j]: a quadratic Q̂ per action
 :mod:`torch_api.core.weights`         per-decision importance weights, ESS, ``w^ν`` (eq. 21)
 :mod:`torch_api.core.psi`             psi_hat: grouped, single-sample, k-NN (eq. 14, 20)
 :mod:`torch_api.core.design`          episodes → psi_hat rows, weights, rewards (eq. 19-20)

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Iterator
+import sys
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
 from torch import nn
 
-from torch_api._checks import _count
+from torch_api._checks import _check_not_meta, _count
 
-__all__ = ["GaussianActionBasis", "as_features"]
+__all__ = ["TAU_MIN", "GaussianActionBasis", "as_features"]
 
 
 def as_features(obs: torch.Tensor) -> torch.Tensor:
@@ -25,6 +26,56 @@ def as_features(obs: torch.Tensor) -> torch.Tensor:
     if not (obs.is_floating_point() or obs.is_complex()):
         obs = obs.to(torch.get_default_dtype())
     return obs
+
+
+TAU_MIN = math.sqrt(sys.float_info.min / 2)  # 2τ² a normal float64: 1/(2τ²) finite (1.05e-154)
+
+
+def _kernel_scale_is_finite(width: float) -> bool:
+    """Whether ``2·width²`` is a normal float64 number, so that the kernel's scale
+    ``1/(2·width²)`` is finite."""
+    return math.isfinite(2 * width**2) and 2 * width**2 >= sys.float_info.min
+
+
+def _check_widths(widths, dims: int, tau: float) -> torch.Tensor:
+    """Per-dimension kernel widths ``[d]`` as float64: finite, > 0, and ``τ·w_d`` large enough
+    for a finite kernel scale (an infinite width would silently drop its dimension; a tiny one
+    makes every kernel 0, or NaN, away from its centre)."""
+    _check_not_meta("widths", widths)
+    widths = torch.as_tensor(widths, dtype=torch.float64).cpu()
+    if widths.ndim != 1 or widths.shape[0] != dims:
+        raise ValueError(
+            f"widths must hold one width per state dimension ({dims}), got "
+            f"{widths.shape[0] if widths.ndim == 1 else tuple(widths.shape)}"
+        )
+    if not (torch.isfinite(widths).all() and (widths > 0).all()):
+        raise ValueError(f"widths must be finite numbers > 0, got {widths.tolist()}")
+    if not all(_kernel_scale_is_finite(tau * w) for w in widths.tolist()):
+        raise ValueError(
+            f"widths {widths.tolist()} with tau = {tau:g}: each kernel scale "
+            f"1/(2·(tau·width)²) must be a finite float64 number (tau·width >= {TAU_MIN:.3g})"
+        )
+    return widths
+
+
+def _check_kernel_range(given: torch.Tensor, centers: torch.Tensor, tau: float) -> None:
+    """The stored centres must be finite in their dtype, and ``||c||²/(2τ²)`` finite in float64:
+    else ``||s - c||²/(2τ²)`` overflows for observations of ordinary size and every kernel
+    is ``exp(-inf) = 0`` (or NaN)."""
+    if not torch.isfinite(centers).all():
+        raise ValueError(
+            f"centers must be finite in {str(centers.dtype).removeprefix('torch.')} (the dtype "
+            f"they are stored in), got a coordinate of {given.abs().max().item():.3g} (centres "
+            "divided by tiny widths overflow it)"
+        )
+    scaled = (centers.to(torch.float64) / tau).square().sum(-1) / 2
+    if not torch.isfinite(scaled).all():
+        largest = (centers.to(torch.float64).abs().amax() / tau).item()
+        raise ValueError(
+            f"||c||²/(2·tau²) overflows float64 for the centres (a coordinate over tau up to "
+            f"{largest:.3g}): ||s - c||²/(2·tau²) is inf for observations of ordinary size, "
+            "and every kernel exp(-inf) = 0"
+        )
 
 
 class GaussianActionBasis(nn.Module):
@@ -40,8 +91,12 @@ class GaussianActionBasis(nn.Module):
 
     Args:
         centers: Gaussian centres ``[C, d]``.
-        tau: kernel width τ > 0.
+        tau: kernel width τ > 0, at least :data:`TAU_MIN` (the kernel's scale ``1/(2τ²)``
+            must be a finite float64 number).
         num_actions: number of discrete actions A.
+        widths: optional widths ``w [d]`` per state dimension (beyond the paper): the kernel
+            becomes ``exp(-Σ_d (s_d - c_d)² / (2 τ² w_d²))``, computed as the paper's kernel on
+            coordinates divided by the widths. Finite and > 0, with ``τ·w_d >= TAU_MIN``.
 
     Example:
         >>> basis = GaussianActionBasis(centers=torch.tensor([[1.0], [3.0]]), tau=1.5,
@@ -54,8 +109,16 @@ class GaussianActionBasis(nn.Module):
         torch.Size([7, 6])
     """
 
-    def __init__(self, *, centers: torch.Tensor, tau: float, num_actions: int) -> None:
+    def __init__(
+        self,
+        *,
+        centers: torch.Tensor,
+        tau: float,
+        num_actions: int,
+        widths: Sequence[float] | torch.Tensor | None = None,
+    ) -> None:
         super().__init__()
+        _check_not_meta("centers", centers)
         centers = torch.as_tensor(centers)
         if centers.ndim != 2 or centers.shape[0] == 0:
             raise ValueError(
@@ -65,10 +128,19 @@ class GaussianActionBasis(nn.Module):
             raise ValueError("centers must be finite")
         if isinstance(tau, bool) or not (isinstance(tau, numbers.Real) and tau > 0):
             raise ValueError(f"tau must be > 0, got {tau!r}")
-        if not (math.isfinite(tau) and math.isfinite(2 * tau**2) and 2 * tau**2 > 1e-300):
-            raise ValueError(f"tau must be finite with 2·tau² a normal number, got {tau}")
+        if not (math.isfinite(tau) and _kernel_scale_is_finite(tau)):
+            raise ValueError(
+                f"tau must be finite with 2·tau² a normal number, got {tau}: the kernel's scale "
+                f"1/(2·tau²) must be a finite float64 number (tau >= {TAU_MIN:.3g})"
+            )
         num_actions = _count("num_actions", num_actions)
-        self.register_buffer("centers", centers.to(torch.get_default_dtype()))
+        if widths is not None:
+            widths = _check_widths(widths, centers.shape[1], float(tau))
+            centers = centers / widths.to(centers.dtype)  # the kernel on coordinates / widths
+        self.register_buffer("kernel_widths", widths)
+        stored = centers.to(torch.get_default_dtype())
+        _check_kernel_range(centers, stored, float(tau))
+        self.register_buffer("centers", stored)
         self.tau = float(tau)
         self.num_actions = int(num_actions)
         self.num_kernels = centers.shape[0] + 1
@@ -95,6 +167,9 @@ class GaussianActionBasis(nn.Module):
             hit = self._kernel_memo.get(id(obs))
             if hit is not None and hit[0] is obs:
                 return hit[1]
+        given = obs
+        if self.kernel_widths is not None:  # (the centres were divided when the basis was made)
+            obs = obs / self.kernel_widths.to(device=obs.device, dtype=obs.dtype)
         centers = self.centers.to(device=obs.device, dtype=obs.dtype)
         num_centers = centers.shape[0]
         # ||s - c||² one coordinate at a time on [..., C] (a [..., C, d] intermediate reduced
@@ -107,7 +182,7 @@ class GaussianActionBasis(nn.Module):
         torch.exp(sq_dist.mul_(-1.0 / (2.0 * self.tau**2)), out=out[..., :num_centers])
         out[..., num_centers] = 1.0
         if self._kernel_memo is not None:
-            self._kernel_memo[id(obs)] = (obs, out)  # holds obs: its id stays unique meanwhile
+            self._kernel_memo[id(given)] = (given, out)  # holds it: its id stays unique meanwhile
         return out
 
     @contextmanager

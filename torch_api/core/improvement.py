@@ -88,11 +88,28 @@ def greedy_probs(q: torch.Tensor, tie_break: str = "uniform") -> torch.Tensor:
     return mask / mask.sum(-1, keepdim=True)
 
 
-def _check_epsilon(epsilon) -> torch.Tensor:
+EPSILON_ROUNDING = 1e-12  # ε this far above 1 is rounding (ε_l + offset), read as 1
+
+
+def _check_epsilon(epsilon, *, at_most_one: bool = False) -> torch.Tensor:
+    """ε as a float64 tensor: finite and >= 0; with ``at_most_one`` also <= 1 (a policy's ε:
+    above 1 there is no ε-greedy policy, and capping it would hide a mistake). Values above 1
+    are capped at 1 (the uniform policy), which then only absorbs rounding."""
     eps = torch.as_tensor(epsilon, dtype=torch.float64)
+    if at_most_one and (
+        not bool(torch.isfinite(eps).all())
+        or bool((eps < 0).any())
+        or bool((eps > 1 + EPSILON_ROUNDING).any())
+    ):
+        raise ValueError(f"epsilon must lie in [0, 1], got {_shown(epsilon)}")
     if not torch.isfinite(eps).all() or (eps < 0).any():
         raise ValueError(f"epsilon must be >= 0, got {epsilon}")
     return eps.clamp(max=1.0)  # ε is capped at 1, the uniform policy (docs/algorithm.md)
+
+
+def _shown(value):
+    """A number or a small tensor as a list, for a message."""
+    return value.tolist() if isinstance(value, torch.Tensor) else value
 
 
 def epsilon_greedy_probs(q: torch.Tensor, epsilon, tie_break: str = "uniform") -> torch.Tensor:

@@ -19,6 +19,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torch_api._checks import _check_not_meta, all_finite
+
 __all__ = [
     "PsiHat",
     "expected_next_features",
@@ -168,6 +170,22 @@ def knn_mean(
     return (gathered * valid.unsqueeze(-1)).sum(-2) / valid.sum(-1, keepdim=True)
 
 
+def _check_finite_rows(name: str, values: torch.Tensor, mask: torch.Tensor | None) -> None:
+    """Refuse NaN or inf in the rows ``values [..., n, F]`` the mask ``[..., n]`` keeps (a
+    padding row may hold anything): a finite sum proves all is well, and only otherwise are the
+    rows looked at."""
+    if all_finite(values):
+        return
+    bad = ~torch.isfinite(values).all(-1)
+    if mask is not None:
+        bad &= mask.bool()
+    if bad.any():
+        raise ValueError(
+            f"{name} contains NaN or inf (in {int(bad.sum())} of {bad.numel()} samples): "
+            "their psi_hat rows would be NaN"
+        )
+
+
 def psi_hat(
     phi: torch.Tensor,
     next_features: torch.Tensor,
@@ -189,12 +207,17 @@ def psi_hat(
         mask: optional bool ``[..., n]``; masked samples (padding) are left out of every group
             mean and their own rows are zero.
 
+    Raises:
+        ValueError: NaN or inf in ``phi`` or ``next_features`` on a sample the mask keeps.
+
     Returns:
         ``[..., n, B]`` in float64 (the dtype of the weights and of the solve downstream),
         whatever the dtype of ``phi``.
     """
     if not 0 < gamma <= 1:
         raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+    _check_not_meta("phi", phi)
+    _check_not_meta("next_features", next_features)
     phi, next_features = phi.to(torch.float64), next_features.to(torch.float64)
     if next_features.shape != phi.shape:
         raise ValueError(
@@ -211,7 +234,13 @@ def psi_hat(
         bootstrap = bootstrap * (~terminated.bool()).unsqueeze(-1).to(bootstrap.dtype)
     if groups is not None:
         bootstrap = _group_mean(bootstrap, groups, mask)
-    return (phi - gamma * bootstrap) * mask.unsqueeze(-1).to(phi.dtype)
+    # (a padding row is 0 whatever it holds: NaN · 0 would be NaN)
+    out = torch.where(mask.bool().unsqueeze(-1), phi - gamma * bootstrap, 0.0)
+    if not all_finite(out):  # one reduction; the inputs are looked at only to name the culprit
+        _check_finite_rows("phi", phi, mask)
+        _check_finite_rows("next_features", next_features, mask)
+        raise ValueError("psi_hat rows overflow: phi - gamma · next_features is inf")
+    return out
 
 
 class PsiHat(nn.Module):
@@ -277,6 +306,10 @@ class PsiHat(nn.Module):
         Returns:
             ``[..., n, B]`` in float64.
         """
+        _check_not_meta("obs", obs)
+        _check_not_meta("next_obs", next_obs)
+        _check_finite_rows("obs", obs, mask)
+        _check_finite_rows("next_obs", next_obs, mask)
         obs64, next64 = obs.to(torch.float64), next_obs.to(torch.float64)
         phi = self.basis.phi(obs64, action)
         if hasattr(self.basis, "expected_phi"):  # block-structured fast path

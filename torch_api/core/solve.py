@@ -11,7 +11,7 @@ import warnings
 
 import torch
 
-from torch_api._checks import all_finite
+from torch_api._checks import _check_not_meta, all_finite
 from torch_api.core.weights import flatten_weights
 
 __all__ = [
@@ -26,6 +26,8 @@ _ILL_CONDITIONED = 1e10  # condition number of A + λI above which a solve is re
 
 
 def _check_design(x: torch.Tensor, w: torch.Tensor, lam: float) -> None:
+    _check_not_meta("x", x)
+    _check_not_meta("w", w)
     if x.ndim < 2:
         raise ValueError(f"x must have shape [..., n, B], got {tuple(x.shape)}")
     if w.shape != x.shape[:-1]:
@@ -47,6 +49,35 @@ def _check_moments(*moments: torch.Tensor) -> None:
     for moment in moments:
         if not all_finite(moment):
             raise ValueError("x (the psi_hat design) contains NaN or inf")
+
+
+def _check_u(u: torch.Tensor, *, semidefinite: bool) -> None:
+    """Ũ is a second moment ``(1/n) Σ w x xᵀ`` with ``w >= 0``: finite, with a non-negative
+    diagonal, and (``semidefinite``) positive semi-definite, so that J = tr(Ũ M C M) >= 0.
+    Its off-diagonal entries may be negative. The semi-definite test is a Cholesky factorisation
+    of the symmetric part plus ``sqrt(eps) · max diag`` (the rounding a moment formed in u's
+    dtype may carry), in float64."""
+    _check_not_meta("u", u)
+    if not all_finite(u):
+        raise ValueError("u (Ũ, a second moment Σ w x xᵀ / n) contains NaN or inf")
+    diag = u.diagonal(dim1=-2, dim2=-1)
+    if diag.numel() and diag.min() < 0:
+        raise ValueError(
+            f"u (Ũ, a second moment Σ w x xᵀ / n) must be positive semi-definite, but its "
+            f"diagonal holds {diag.min().item():g} (J would come out negative)"
+        )
+    if not semidefinite or not u.numel():
+        return
+    sym = (u + u.mT).to(torch.float64) / 2
+    eps = torch.finfo(u.dtype).eps if u.is_floating_point() else torch.finfo(torch.float64).eps
+    jitter = eps**0.5 * diag.to(torch.float64).amax(-1).clamp_min(torch.finfo(torch.float64).tiny)
+    eye = torch.eye(u.shape[-1], dtype=torch.float64, device=u.device)
+    _, info = torch.linalg.cholesky_ex(sym + jitter[..., None, None] * eye)
+    if (info > 0).any():
+        raise ValueError(
+            "u (Ũ, a second moment Σ w x xᵀ / n) is not positive semi-definite (it has a "
+            "negative eigenvalue beyond rounding): J would not be a squared error"
+        )
 
 
 def _normaliser(num_samples, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -140,6 +171,7 @@ def weighted_ridge(
         torch.Size([3, 4])
     """
     _check_design(x, w, lam)
+    _check_not_meta("r", r)
     if r.shape != w.shape:
         raise ValueError(f"r must have shape {tuple(w.shape)}, got {tuple(r.shape)}")
     if not torch.isfinite(r).all():
@@ -165,7 +197,7 @@ def j_from_moments(
     Args:
         a: ``A = (1/n) Σ w x xᵀ``, ``[..., B, B]``.
         c: ``C = (1/n²) Σ w² x xᵀ``, ``[..., B, B]``.
-        u: ``Ũ``, ``[..., B, B]`` (broadcast against ``a``).
+        u: ``Ũ``, ``[..., B, B]`` (broadcast against ``a``); finite, with a diagonal >= 0.
         lam: λ ≥ 0 (λ = 0 is for analysis only: A must then be positive definite).
 
     Returns:
@@ -173,6 +205,9 @@ def j_from_moments(
     """
     if not lam >= 0:
         raise ValueError(f"lam must be >= 0, got {lam}")
+    _check_not_meta("a", a)
+    _check_not_meta("c", c)
+    _check_u(u, semidefinite=False)  # (the cheap part: Ũ here is usually the library's own)
     eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
     chol = _cholesky(a + lam * eye, lam)
     u = u.to(a.dtype).expand(*a.shape[:-2], *u.shape[-2:]) if u.ndim < a.ndim else u.to(a.dtype)
@@ -204,7 +239,9 @@ def j_criterion(
         x: psi_hat rows of the candidate's data set ``[..., n, B]`` (e.g. ``[Z, K, n, B]``).
         w: importance weights ``[..., n]`` w.r.t. the evaluation policy.
         u: ``Ũ`` ``[..., B, B]``, broadcast against the leading dims of ``x``
-            (e.g. ``[Z, 1, B, B]``).
+            (e.g. ``[Z, 1, B, B]``): a second moment, positive semi-definite (its
+            off-diagonal entries may be negative); anything else is refused, as J would not be
+            a squared error (it could come out negative).
         lam: λ > 0.
         num_samples: the ``n`` of the normalisation, as in :func:`weighted_ridge`.
         sq_weights: ``Σ w²`` per row when rows are aggregates of identical rows
@@ -228,6 +265,7 @@ def j_criterion(
         raise ValueError(
             f"u must have shape [..., {x.shape[-1]}, {x.shape[-1]}], got {tuple(u.shape)}"
         )
+    _check_u(u, semidefinite=True)
     if sq_weights is not None and sq_weights.shape != w.shape:
         raise ValueError(
             f"sq_weights must have shape {tuple(w.shape)}, got {tuple(sq_weights.shape)}"

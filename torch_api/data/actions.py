@@ -54,10 +54,12 @@ class ActionEncoding:
             batch_shape: the env's batch size.
 
         Raises:
-            ValueError: a spec that is not a discrete (one-hot or categorical) action.
+            ValueError: a spec that is not a discrete (one-hot or categorical) action, or a
+                multi-discrete one (``MultiCategorical``, ``MultiOneHot``: unsupported).
         """
         from torchrl.data import Categorical, OneHot  # (imported here: a light module)
 
+        _refuse_multi_discrete(spec)
         tail = tuple(spec.shape[len(batch_shape) :])
         if isinstance(spec, OneHot):
             return cls(num_actions=int(spec.space.n), one_hot=True, dtype=spec.dtype)
@@ -82,6 +84,7 @@ class ActionEncoding:
     def of_spec(cls, spec) -> ActionEncoding:
         """The encoding of an action spec given without its env's batch size: a ``OneHot``
         spec is ``[*E, A]``, a ``Categorical`` one ``[*E, 1]`` (a trailing 1) or ``[*E]``."""
+        _refuse_multi_discrete(spec)
         shape = tuple(spec.shape)
         one_hot = type(spec).__name__ == "OneHot"
         return cls.from_spec(spec, shape[:-1] if one_hot or shape[-1:] == (1,) else shape)
@@ -100,6 +103,26 @@ class ActionEncoding:
         if action.ndim == batch_dims + 1 and action.shape[-1] == 1 and not self.one_hot:
             return action.squeeze(-1).long()
         return action.long().argmax(-1)
+
+
+_MULTI_DISCRETE = ("MultiCategorical", "MultiOneHot")
+
+
+def _refuse_multi_discrete(spec) -> None:
+    """Several discrete actions per step (TorchRL's ``MultiCategorical`` / ``MultiOneHot``,
+    subclasses of ``Categorical`` / ``OneHot``) are not supported: the library's policies and
+    basis choose one of A actions."""
+    name = type(spec).__name__
+    if name in _MULTI_DISCRETE:
+        nvec = getattr(spec, "nvec", None)
+        nvec = nvec.tolist() if isinstance(nvec, torch.Tensor) else nvec
+        sizes = f"nvec = {list(nvec)}: " if isinstance(nvec, list | tuple) else ""
+        raise ValueError(
+            f"{name} action specs ({sizes}several discrete actions per step) are not supported: "
+            "the library's policies choose one of A actions at each step (a OneHot or "
+            "Categorical spec); flatten the action space into one Categorical of prod(nvec) "
+            "actions"
+        )
 
 
 def check_actions(spec, action: torch.Tensor, *, who: str = "the policy") -> None:

@@ -19,6 +19,7 @@ from torch_api.data.episodes import (
     SAMPLE_LOG_PROB,
     SAMPLE_PROBS,
     _from_torchrl,
+    _refuse_meta,
     joinable,
     pad_steps,
     taken_sample_probs,
@@ -33,11 +34,13 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
 
     Raises:
         ValueError: a missing key, a reward in reward-free data (or none in rewarded data),
-            NaN/inf observations or rewards, probability rows that do not sum to 1, or a taken
-            action whose recorded sampling probability is 0.
+            a tensor on the meta device, a mask that is not bool, NaN/inf observations or
+            rewards, probability rows that do not sum to 1, or a taken action whose recorded
+            sampling probability is 0.
     """
     if episodes.batch_dims < 2:
         raise ValueError(f"episodes must have batch shape [..., M, N], got {tuple(episodes.shape)}")
+    _refuse_meta(episodes)
     keys = episodes.keys(include_nested=True)
     for key in _REQUIRED:
         if key not in keys:
@@ -50,6 +53,11 @@ def validate_episodes(episodes: TensorDictBase, *, rewarded: bool) -> None:
     if not rewarded and has_reward:
         raise ValueError("reward-free episodes must not carry ('next', 'reward')")
     mask = episodes["mask"]
+    if mask.dtype != torch.bool:
+        raise ValueError(
+            f"mask must be a bool tensor (True on the real steps, False on padding), got "
+            f"{mask.dtype}"
+        )
     for key in ("observation", ("next", "observation")):
         values = episodes[key]
         if not bool(torch.isfinite(values).all()) and _masked_any(~torch.isfinite(values), mask):
@@ -166,6 +174,15 @@ class EpisodeBuffer:
 
     def __len__(self) -> int:
         return len(self._buffer)
+
+    @property
+    def steps(self) -> int | None:
+        """N, the (padded) length of the held episodes; None while the buffer is empty."""
+        return self._steps if len(self) else None
+
+    def longest_episode(self) -> int:
+        """Real (unmasked) steps of the longest held episode; 0 while the buffer is empty."""
+        return int(self.episodes()["mask"].sum(-1).max()) if len(self) else 0
 
     @property
     def num_transitions(self) -> int:

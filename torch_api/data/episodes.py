@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from torch_api._checks import _check_not_meta
 from torch_api.data.actions import ActionEncoding, check_encoded
 
 __all__ = [
@@ -46,6 +47,15 @@ def _as_index(action: torch.Tensor, batch_dims: int) -> torch.Tensor:
     if action.ndim == batch_dims + 1 and action.shape[-1] == 1:
         return action.squeeze(-1).long()
     return action.long().argmax(-1)
+
+
+def _refuse_meta(data: TensorDictBase, name: str = "episodes") -> None:
+    """Refuse data with a tensor on the ``meta`` device (a shape without values), naming its
+    key: one look at each leaf's device, no value read."""
+    if data.device is not None and data.device.type != "meta":
+        return  # (one device for all, and not meta)
+    for key, value in data.items(include_nested=True, leaves_only=True):
+        _check_not_meta(f"{name}[{key!r}]", value)
 
 
 def _probability_entries(data: TensorDictBase, shape: torch.Size) -> dict:
@@ -158,6 +168,7 @@ def _from_torchrl(
 ) -> tuple[TensorDictBase, torch.Tensor | None, torch.Tensor | None]:
     """:func:`as_episodes` plus each episode's trajectory id ``[M]`` and whether the
     trajectory goes on past the data ``[M]`` (both None where the data does not say)."""
+    _refuse_meta(data, "the data")
     if _is_library_format(data):
         return data, None, None
     keys = data.keys(include_nested=True)

@@ -1,7 +1,7 @@
-"""Durable runs of the examples: one run writes an output folder at a time (its lock is held
-from the first check to the last file written); a folder holding runs or another run's results
-needs ``--resume`` or ``--overwrite``; SIGINT/SIGTERM (the commit in flight completes) and store
-errors end the script with one line.
+"""Durable runs of an experiment's output folder: one run writes a folder at a time (its lock
+is held from the first check to the last file written); a folder holding runs or another
+run's results needs ``resume`` or ``overwrite``; SIGINT/SIGTERM (the commit in flight
+completes) and store errors end the script with one line.
 """
 
 from __future__ import annotations
@@ -18,10 +18,9 @@ from pathlib import Path
 from torch_api.runs.run_guard import lock_run
 from torch_api.runs.store import RunStore, StoreError
 
-MAY_CHANGE_ON_RESUME = ("resume", "overwrite", "threads", "backend", "workers", "chunks")
-MAY_CHANGE_ON_RESUME += ("ray_address", "ray_cpus", "logger", "device")
+MAY_CHANGE_ON_RESUME = ("execution", "device")
 """Arguments a resumed run may give otherwise than the run whose results are in its folder
-(where and how fast it runs, not what it computes)."""
+(where and how fast it runs, not what it computes: the :class:`Execution` and the device)."""
 
 
 class Interrupted(BaseException):
@@ -67,21 +66,29 @@ def durable_runs(paths: Sequence[Path], where: str | os.PathLike) -> Iterator[No
 
 
 @contextlib.contextmanager
-def folder_held(out: Path, stores: Sequence[Path], outputs: Sequence[Path], args) -> Iterator[None]:
+def folder_held(
+    out: Path, stores: Sequence[Path], outputs: Sequence[Path], execution, args=None
+) -> Iterator[None]:
     """The block writes the output folder ``out`` (its runs at ``stores``, its files
     ``outputs``) holding the folder's lock (``<out>/.folder.lock``): a second script on the
     folder, ``--overwrite`` included, ends with one line (exit 1) before it touches anything.
-    Before the block: misplaced paths (exit 2), then :func:`stored_runs_error` (exit 1)."""
+    Before the block: misplaced paths or a folder that cannot be made (exit 2), then
+    :func:`stored_runs_error` (exit 1)."""
     if (why := misplaced_error(stores, outputs)) is not None:
         print(f"error: {why}", file=sys.stderr, flush=True)
         raise SystemExit(2)
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        print(f"error: out_dir {str(out)!r} cannot be made: {error}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
     try:
         fd = lock_run(Path(out) / ".folder", what=f"the folder {out}")
     except StoreError as error:
         exit_store_error(error)
     try:
         if (
-            why := stored_runs_error(stores, args.resume, args.overwrite, outputs, args)
+            why := stored_runs_error(stores, execution.resume, execution.overwrite, outputs, args)
         ) is not None:
             raise SystemExit(f"error: {why}")
         yield
@@ -136,7 +143,7 @@ def _other_results(results: Path, args) -> str | None:
         theirs = json.loads(results.read_text())["args"]
     except (OSError, ValueError, KeyError, TypeError):
         return None  # no results (or unreadable ones): nothing of another run to keep
-    mine = json.loads(json.dumps(dataclasses.asdict(args)))
+    mine = json.loads(json.dumps(_plain(args)))
     differ = [
         f"--{k.replace('_', '-')} {theirs.get(k)!r}, not {mine.get(k)!r}"
         for k in sorted(theirs.keys() | mine.keys())
@@ -148,6 +155,11 @@ def _other_results(results: Path, args) -> str | None:
         f"the results in {results} are of a run with other arguments ({'; '.join(differ[:3])}); "
         "resume it with its own, add --overwrite to replace them, or use another --out-dir"
     )
+
+
+def _plain(args) -> dict:
+    """A script's arguments as the results' JSON holds them."""
+    return dataclasses.asdict(args) if dataclasses.is_dataclass(args) else dict(vars(args))
 
 
 def stored_summary(paths: Sequence[Path]) -> tuple[int, int]:

@@ -3,7 +3,7 @@
 ``<name>.csv`` holds every per-trial number in long format, one row per (schedule, method,
 seed, iteration, trial, measure) with its ``value`` (:data:`COLUMNS`); ``<name>.json`` holds the
 arguments, the wall time, the t-tests and every run's settings and totals. The results in memory
-are laid out as :mod:`_harness` describes.
+are laid out as :mod:`torch_api.experiment.runner` describes.
 """
 
 from __future__ import annotations
@@ -13,22 +13,25 @@ import json
 import math
 import os
 from collections.abc import Iterator
-from dataclasses import asdict
+from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.special  # Student's t law; scipy.stats costs 0.75 s more to import
+import scipy.stats
+
+from torch_api.runs.files import write_text_atomic
 
 if TYPE_CHECKING:
-    from _harness import Experiment
+    from torch_api.experiment.runner import Experiment
 
 METHODS = {"AL": "active", "PL": "passive"}
 """The two methods of a pair and the loop's mode of each."""
 COLUMNS = ("schedule", "method", "seed", "iteration", "trial", "measure", "value")
 """The columns of every experiment's CSV (long format)."""
-NOT_IN_CSV = ("iteration", "seconds")
-"""Keys of an iteration's row that are not measures (wall times differ between equal runs)."""
+NOT_IN_CSV = ("iteration", "seconds", "selection_cpu_seconds")
+"""Keys of an iteration's row that are not measures: times differ between equal runs (the
+JSON holds them: each run's ``iteration_seconds`` and ``selection_cpu_seconds``)."""
 
 
 # -- statistics ------------------------------------------------------------------------------
@@ -52,9 +55,8 @@ def paired_test(al, pl) -> dict:
     d, n = a - p, len(a)
     t = pvalue = None
     if n > 1 and not np.all(d == d[0]):
-        # scipy.stats.ttest_rel's statistic and p-value (equal to ~1e-14, tested)
-        t = float(d.mean() / math.sqrt(d.var(ddof=1) / n))
-        pvalue = float(2.0 * scipy.special.stdtr(n - 1, -abs(t)))
+        test = scipy.stats.ttest_rel(a, p)
+        t, pvalue = float(test.statistic), float(test.pvalue)
     return {
         "mean_difference": float(d.mean()),
         "t": t,
@@ -155,31 +157,42 @@ def read_results(path: str | os.PathLike) -> dict[tuple, list]:
     return table
 
 
-def write_results(args, experiment: Experiment, results: dict, wall: float, **extra) -> dict:
-    """``<name>.csv`` (:func:`csv_lines`) and ``<name>.json`` (arguments, wall time, t-tests,
-    the runs' settings and totals; ``extra``: more entries) in ``--out-dir``; the learning
-    curves with ``--logger``.
+def write_results(
+    execution, args, experiment: Experiment, results: dict, wall: float, **extra
+) -> dict:
+    """``<name>.csv`` (:func:`csv_lines`) and ``<name>.json`` (the script's arguments, wall
+    time, t-tests, the runs' settings and totals; ``extra``: more entries) in
+    ``execution.out_dir``; the learning curves with ``execution.logger``.
 
     Returns the JSON's payload, with ``results`` (every number, in memory) added.
     """
-    out = Path(args.out_dir)
-    with (out / f"{experiment.name}.csv").open("w", newline="") as handle:
-        handle.write("".join(csv_lines(results)))
+    out = Path(execution.out_dir)
+    write_text_atomic(out / f"{experiment.name}.csv", "".join(csv_lines(results)))
     summary = {
         name: {
             "schedule": entry["schedule"],
             "t_tests": entry["t_tests"],
             "runs": {
                 method: {k: v for k, v in run.items() if k != "iterations"}
+                | {
+                    "iteration_seconds": [it.get("seconds") for it in run["iterations"]],
+                    "selection_cpu_seconds": [
+                        it.get("selection_cpu_seconds") for it in run["iterations"]
+                    ],
+                }
                 for method, run in entry["runs"].items()
             },
         }
         for name, entry in results.items()
     }
-    payload = {"args": asdict(args), "wall_seconds": wall, **extra}
-    (out / f"{experiment.name}.json").write_text(json.dumps({**payload, "summary": summary}))
-    log_curves(args.logger, out, experiment, results)
+    payload = {"args": _plain(args), "wall_seconds": wall, **extra}
+    write_text_atomic(out / f"{experiment.name}.json", json.dumps({**payload, "summary": summary}))
+    log_curves(execution.logger, out, experiment, results)
     return {**payload, "summary": summary, "results": results}
+
+
+def _plain(args) -> dict:
+    return asdict(args) if is_dataclass(args) else dict(vars(args))
 
 
 def log_curves(kind: str, out: Path, experiment: Experiment, results: dict) -> None:

@@ -1,20 +1,21 @@
-"""The paired experiment behind the iterative examples: runs, chunks, statistics and files.
+"""The paired experiment: AL and PL runs on the same seeds, chunked, stored, tested, written.
 
 An experiment runs Algorithm 1 twice per schedule of rewarded episodes on the same seeds (a
-paired design): AL (``selector=SamplingPolicySelector(...)``, the sampling policy chosen by J')
-and PL (``selector=None``: the evaluation policy samples). An example supplies what is its own —
-the environment, the basis, the evaluation of pi_{l+1}, as a function of one :class:`Chunk` that
+paired design): AL (the sampling policy chosen by J', ``spec.selection``) and PL (the
+evaluation policy samples, ``selection=None``). A script supplies what is its own — the
+environment, the basis, the evaluation of pi_{l+1}, as a function of one :class:`Chunk` that
 builds its run with :func:`make_iteration` and returns :func:`run_iterations` — and
 :func:`run_experiment` does the rest:
 
-1. the trials of every run split into chunks (``--chunks``), each run as one batched
-   computation where ``--backend`` says (``torch_api.runs.dispatch.run_chunks``), every chunk stored
-   as it goes in ``<out-dir>/checkpoints/`` (``--resume``, ``--overwrite``);
+1. the trials of every run split into chunks (``Execution.chunks``), each run as one batched
+   computation where ``Execution.backend`` says (:func:`torch_api.runs.dispatch.run_chunks`),
+   every chunk stored as it goes in ``<out_dir>/checkpoints/`` (``resume``, ``overwrite``);
 2. SIGINT/SIGTERM: the commit in flight completes, one line, exit 130/143; a store error
-   (a run in use, unwritable, corrupted, of other settings): one line, exit 1 (:mod:`_durable`);
+   (a run in use, unwritable, corrupted, of another specification): one line, exit 1
+   (:mod:`torch_api.experiment.folder`);
 3. the chunks of a run concatenated along the trial axis, the paired two-tailed t-test of AL vs
-   PL at the last iteration, then the example's report (its tables and files, :mod:`_results`,
-   re-exported here).
+   PL at the last iteration, then the script's report (its tables and files,
+   :mod:`torch_api.experiment.results`).
 
 One result layout for every experiment, in memory::
 
@@ -23,14 +24,15 @@ One result layout for every experiment, in memory::
     run = {"seed": int, "seconds": float, "iterations": [row_l, …], …}
     row_l = {"iteration": l, measure: [T] per trial or one number, "j_mean": [T][K], …}
 
-and on disk (:func:`_results.write_results`): ``<name>.csv`` in long format, one row per (schedule,
-method, seed, iteration, trial, measure) with its ``value`` — every per-trial number of the
-experiment — and ``<name>.json`` with the arguments, the wall time, the t-tests and every run's
-settings and totals.
+and on disk (:func:`~torch_api.experiment.results.write_results`): ``<name>.csv`` in long
+format, one row per (schedule, method, seed, iteration, trial, measure) with its ``value``
+— every per-trial number of the experiment — and ``<name>.json`` with the arguments, the wall
+time, the t-tests and every run's settings and totals.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
@@ -40,25 +42,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _durable import durable_runs, folder_held, stored_runs_error  # noqa: F401
-
-# the harness is the examples' one entry: the numbers' and the durable runs' parts re-exported
-from _process import configure_process
-from _results import (  # noqa: F401
-    COLUMNS,
-    METHODS,
-    mean_se,
-    paired_test,
-    print_curves,
-    print_t_tests,
-    read_results,
-    write_results,
-)
+import torch
 from tqdm import tqdm
 
+from torch_api.experiment.folder import durable_runs, folder_held
+from torch_api.experiment.options import Execution
+from torch_api.experiment.results import METHODS, paired_test
+from torch_api.loop.durable import DurableRun
 from torch_api.loop.iteration import ActivePolicyIteration
-from torch_api.loop.selector import SamplingPolicySelector
+from torch_api.loop.spec import RunSpec
 from torch_api.runs.dispatch import run_chunks, split_trials, trial_seeds
+
+__all__ = [
+    "Chunk",
+    "Experiment",
+    "derived_seed",
+    "make_iteration",
+    "run_experiment",
+    "run_iterations",
+]
 
 
 def derived_seed(*parts: int, bits: int = 31) -> int:
@@ -75,7 +77,9 @@ class Chunk:
     """Some trials of one run (a schedule and a method), run as one batch and stored."""
 
     args: Any
-    """the script's arguments (a ``RunOptions``)"""
+    """the script's own arguments (a picklable dataclass)"""
+    execution: Execution
+    """where it runs (``resume``, ``overwrite``)"""
     schedule_name: str
     schedule: tuple[int, ...]
     method: str
@@ -88,39 +92,41 @@ class Chunk:
     """where the chunk's run is stored"""
     on_iteration: Callable[[], None] | None = None
     """called after every iteration the chunk runs (the experiment's progress bar; local only)"""
-    on_checkpoint: Callable | None = None
-    """called with the run after every commit (the loop's ``on_checkpoint`` hook)"""
+    on_commit: Callable[[], None] | None = None
+    """called after every commit of the chunk's run (local backend only: it does not travel)"""
+    spec: RunSpec | None = None
+    """the experiment's specification, if it has one (:attr:`Experiment.spec`)"""
 
     @property
     def mode(self) -> str:
         return METHODS[self.method]
 
 
-def make_iteration(
-    chunk: Chunk,
-    *,
-    repeats: int,
-    reward_free_env=None,
-    reward_free_workers: int = 0,
-    **settings,
-) -> ActivePolicyIteration:
-    """The chunk's run of Algorithm 1: its mode, its trials' seeds, its store; the rest of the
-    loop's keyword arguments as given (``seed`` defaults to the run's seed)."""
-    settings.setdefault("seed", chunk.seed)
-    selector = None  # PL: the evaluation policy samples
-    if chunk.mode == "active":  # AL: J'-chosen, reward-free env default the loop's env
-        selector = SamplingPolicySelector(
-            env=reward_free_env, num_repeats=repeats, num_workers=reward_free_workers
-        )
-    return ActivePolicyIteration(
-        selector=selector,
+def make_iteration(chunk: Chunk, spec: RunSpec, **objects) -> ActivePolicyIteration:
+    """The chunk's run of Algorithm 1: ``spec`` with the chunk's mode (AL: its selection; PL:
+    none), its trials and their seeds (trial t's seed from (run seed, t) only, so any chunking
+    gives the same numbers), stored in ``chunk.store``; ``objects``: the loop's other arguments
+    (env, basis, evaluate, selector, device, ...)."""
+    selection = spec.selection if chunk.mode == "active" else None
+    if chunk.mode == "active" and selection is None:
+        raise ValueError("an AL chunk needs spec.selection (the settings of Algorithm 2)")
+    if chunk.mode == "passive":
+        objects.pop("selector", None)  # (PL: the evaluation policy samples)
+    trials = dataclasses.replace(
+        spec.trials,
         num_trials=len(chunk.trials),
-        trial_seeds=trial_seeds(chunk.seed, chunk.trials),  # trial t's seed: (run seed, t) only
-        checkpoint_path=chunk.store,
-        resume=chunk.args.resume,
-        overwrite=chunk.args.overwrite,
-        on_checkpoint=chunk.on_checkpoint,
-        **settings,
+        trial_seeds=tuple(trial_seeds(chunk.seed, chunk.trials)),
+    )
+    execution = chunk.execution
+    return ActivePolicyIteration(
+        dataclasses.replace(spec, selection=selection, trials=trials),
+        durable=DurableRun(
+            chunk.store,
+            resume=execution.resume,
+            overwrite=execution.overwrite,
+            on_commit=chunk.on_commit,
+        ),
+        **objects,
     )
 
 
@@ -131,7 +137,7 @@ def run_iterations(chunk: Chunk, api: ActivePolicyIteration, initial: dict | Non
     """
     if api.resumed:
         print(f"resumed {chunk.store} at iteration {api.iteration}/{len(chunk.schedule)}")
-    elif chunk.args.resume:
+    elif chunk.execution.resume:
         print(f"nothing stored in {chunk.store}: starting it fresh")
     started = time.perf_counter()
     for _ in range(api.iteration, len(api.schedule)):
@@ -161,8 +167,9 @@ def concatenate(parts: list[dict]) -> dict:
     run["iterations"] = []
     for its in zip(*(p["iterations"] for p in parts), strict=True):
         row = {key: join([it[key] for it in its]) for key in its[0]}
-        if "seconds" in row:
-            row["seconds"] = sum(it["seconds"] for it in its)
+        for key in ("seconds", "selection_cpu_seconds"):  # (the chunks' times add up)
+            if row.get(key) is not None:
+                row[key] = sum(it[key] for it in its)
         run["iterations"].append(row)
     return run
 
@@ -194,6 +201,14 @@ class Experiment:
     """the measures written by ``--logger`` (means over trials per iteration)"""
     files: tuple[str, ...] = ()
     """the files ``report`` writes besides ``<name>.json`` and ``<name>.csv`` (its figures)"""
+    trials: int = 2
+    """T, the trials of every run (a paired t-test needs two)"""
+    seed: int = 0
+    """the master seed (``run_seed`` derives each schedule's from it)"""
+    spec: RunSpec | None = None
+    """the runs' specification (AL's; PL's drops the selection), checked for all the trials
+    before anything starts (a run too large for memory is refused at once); each
+    :class:`Chunk` carries it"""
 
     def outputs(self, out: Path) -> list[Path]:
         """The files the experiment writes into ``out``, its JSON first."""
@@ -206,42 +221,57 @@ def store_path(out: Path, experiment: Experiment, schedule: str, method: str, c:
     return out / "checkpoints" / (stem + ("" if n == 1 else f"_chunk{c + 1}of{n}") + ".db")
 
 
-def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None = None) -> dict:
-    """Every run of the experiment, chunked where asked, then ``experiment.report(results,
-    wall seconds)``, whose payload it returns.
+def run_experiment(
+    experiment: Experiment,
+    execution: Execution,
+    args: Any,
+    on_commit: Callable[[], None] | None = None,
+) -> dict:
+    """Every run of the experiment, chunked where ``execution`` says, then
+    ``experiment.report(results, wall seconds)``, whose payload it returns.
 
-    Ends the script with one line where the output folder holds runs and neither ``--resume``
-    nor ``--overwrite`` was given, on SIGINT/SIGTERM (until the report is written) and on a
-    store error (see the module). ``on_checkpoint``: given to every run (local backend only: it
-    does not travel).
+    ``args``: the script's own arguments (a dataclass), handed to every :class:`Chunk` and
+    written into the results' JSON. Ends the script with one line where the output folder
+    holds runs and neither ``resume`` nor ``overwrite`` was given, on SIGINT/SIGTERM (until the
+    report is written) and on a store error (see the module). ``on_commit``: called after
+    every commit of every run (local backend only: it does not travel).
     """
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # quiet storage-creation notices
-    configure_process(args)
-    out = Path(args.out_dir)
-    backend, chunks = getattr(args, "backend", "local"), getattr(args, "chunks", 1)
+    if execution.threads > 0:
+        torch.set_num_threads(execution.threads)
+    for schedule in experiment.schedules.values() if experiment.spec is not None else ():
+        # every run's specification, checked before any list of trials is made
+        experiment.spec.replace(
+            schedule=tuple(schedule), num_trials=experiment.trials, trial_seeds=None
+        )
+    execution.check_chunks(experiment.trials)
+    out = Path(execution.out_dir)
+    backend, chunks = execution.backend, execution.chunks
     runs = [(name, method) for name in experiment.schedules for method in METHODS]
-    pieces = split_trials(args.trials, chunks)
+    pieces = split_trials(experiment.trials, chunks)
     plan = [
         Chunk(
             args=args,
+            execution=execution,
             schedule_name=name,
             schedule=tuple(experiment.schedules[name]),
             method=method,
-            seed=experiment.run_seed(args.seed, name),
+            seed=experiment.run_seed(experiment.seed, name),
             trials=list(trials),
             store=store_path(out, experiment, name, method, c, chunks),
-            on_checkpoint=on_checkpoint,
+            on_commit=on_commit if backend == "local" else None,
+            spec=experiment.spec,
         )
         for name, method in runs
         for c, trials in enumerate(pieces)
     ]
     stores = [chunk.store for chunk in plan]
     with (
-        folder_held(out, stores, experiment.outputs(out), args),
+        folder_held(out, stores, experiment.outputs(out), execution, args),
         durable_runs(stores, out / "checkpoints"),
     ):
         (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-        print(f"{len(plan)} chunks of about {args.trials // chunks} trials ({backend})")
+        print(f"{len(plan)} chunks of about {experiment.trials // chunks} trials ({backend})")
         # one bar for the whole experiment: every iteration of every chunk, with its ETA
         total = [len(chunk.schedule) for chunk in plan]
         bar = tqdm(
@@ -262,9 +292,9 @@ def run_experiment(args, experiment: Experiment, on_checkpoint: Callable | None 
                 experiment.run_chunk,
                 plan,
                 backend=backend,
-                workers=getattr(args, "workers", 0) or None,
-                address=getattr(args, "ray_address", "") or None,
-                num_cpus=getattr(args, "ray_cpus", 0) or None,
+                workers=execution.workers or None,
+                address=execution.ray_address or None,
+                num_cpus=execution.ray_cpus or None,
                 on_result=chunk_done,
                 start_method=_start_method(),
             )
@@ -278,8 +308,6 @@ def _start_method() -> str:
     """Linux: local workers forked from this process start at once, with torch imported (no
     thread of this process holds a lock then); elsewhere, or once CUDA is initialised here
     (which a fork does not survive), fresh interpreters."""
-    import torch
-
     return "fork" if sys.platform == "linux" and not torch.cuda.is_initialized() else "spawn"
 
 

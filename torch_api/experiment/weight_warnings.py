@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from torch_api.core.design import CollapsedWeightsWarning
+from torch_api.runs.files import write_text_atomic
 
 __all__ = ["kept_weight_warnings", "report_weight_warnings"]
 
@@ -58,7 +59,7 @@ def report_weight_warnings(runs: list[dict], log: Path) -> str | None:
         f"{w['schedule']} {w['method']} l={w['iteration']} {w['where']}: {w['message']}"
         for w in caught
     ]
-    log.write_text("\n".join(lines) + "\n")
+    write_text_atomic(log, "\n".join(lines) + "\n")
     fits = {(w["schedule"], w["method"], w["iteration"]) for w in caught}
     worst = min(caught, key=lambda w: w["ess"] / max(w["n"], 1))
     line = (

@@ -64,31 +64,71 @@ class RewardBuyer:
         selector: SamplingPolicySelector | None,
         durable: DurableRun,
         num_steps: int,
-        reward_free: EpisodeBuffer,
+        trial_dims: tuple[int, ...],
+        rewarded_slice: str,
+        keep_reward_free: bool,
+        reward_free_capacity: int,
         extra_candidates: Sequence[nn.Module] = (),
     ) -> None:
         self.envs, self.collect, self.streams = envs, collect, streams
         self.policies, self.selector, self.durable = policies, selector, durable
         self.num_steps, self.extra_candidates = num_steps, tuple(extra_candidates)
-        self.trial_dims = durable.layout.trial_dims
-        self.rewarded_slice = durable.layout.rewarded_slice
-        self.keep_reward_free = durable.layout.keep_reward_free
-        self.reward_free = reward_free
+        self.trial_dims = trial_dims
+        self.rewarded_slice = rewarded_slice
+        self.keep_reward_free = keep_reward_free
+        self.reward_free = EpisodeBuffer(rewarded=False, capacity=reward_free_capacity)
         self.reward_free_transitions = torch.zeros(self.trial_dims, dtype=torch.long)
         self.choice: Choice | None = None  # the coming iteration's, once committed
         self.bought: dict[int, TensorDict] = {}  # its episodes bought so far, by index m
+        self.pending: Choice | None = None  # the choice whose M_l episodes are all bought
         self._fresh = False  # chosen here, not restored: (with "all") bought in one rollout
 
     @property
     def _trials(self) -> int:
         return math.prod(self.trial_dims)
 
-    def resume(self, choice: Choice | None, bought: dict[int, TensorDict]) -> None:
-        """Continue an iteration whose choice (and some episodes) a stored run holds."""
-        self.choice, self.bought, self._fresh = choice, dict(bought), False
+    def restore(self, restored) -> None:
+        """Continue from a stored run (:class:`~torch_api.loop.durable.Restored`): its
+        reward-free episodes and counts, and the iteration under way (its choice, the episodes
+        bought of it, or the choice whose episodes are all bought)."""
+        self.reward_free = restored.reward_free
+        self.reward_free_transitions = restored.reward_free_transitions
+        self.choice, self.bought, self._fresh = restored.choice, dict(restored.bought), False
+        self.pending = restored.pending
+
+    def take_choice(self) -> Choice:
+        """The choice of the iteration whose rewards are bought (or under way, when the user
+        bought them), handed over once to its record."""
+        choice = self.pending or self.choice
+        if choice is None:
+            raise RuntimeError("no sampling policy was chosen in this iteration")
+        self.pending, self.choice, self.bought = None, None, {}
+        return choice
+
+    def sampling_policy(self, l_now: int, policy) -> nn.Module:
+        """The chosen sampling policy of iteration l drawing from the iteration's sampling
+        streams (what a one-rollout :meth:`buy` collects with)."""
+        choice = self.choice or self.pending
+        if choice is None:
+            raise RuntimeError(f"iteration {l_now}: no sampling policy chosen")
+        if choice.sampling_rule is None:
+            return self._extra(choice, l_now)
+        rule_policy = self.policies.with_rule(policy, choice.sampling_rule)
+        return rule_policy.with_streams(self.streams.sampling(l_now, "policy"))
+
+    def _extra(self, choice: Choice, l_now: int) -> nn.Module:
+        """The user's own candidate the choice names."""
+        return self.extra_candidates[int(choice.chosen) - len(self.policies.candidate_rules(l_now))]
 
     def select(
-        self, l_now: int, num_episodes: int, policy, earlier, flattening
+        self,
+        l_now: int,
+        num_episodes: int,
+        policy,
+        earlier,
+        flattening,
+        *,
+        reward_free_episodes: int | None = None,
     ) -> TensorDict | None:
         """Step 1: seed iteration l, choose the sampling policy (J'), commit the choice.
 
@@ -96,17 +136,19 @@ class RewardBuyer:
             l_now: l; num_episodes: M_l.
             policy: pi_l; earlier: the rewarded episodes so far ``[*T, M, N]`` (or None).
             flattening: ν of J (:meth:`~torch_api.core.fit.PolicyEvaluation.flattening_for_j`).
+            reward_free_episodes: reward-free episodes per candidate and repeat (default M_l).
 
         Returns:
             The reward-free episodes collected ``[*T, Z·K·M_l, N]``, if kept, else None.
         """
-        started = time.perf_counter()
+        started, cpu_started = time.perf_counter(), time.process_time()
         rules = self.policies.candidate_rules(l_now)
         candidates = None
         if self.selector is not None:
             candidates = self.policies.reward_free_candidates(policy, l_now)
             candidates += list(self.extra_candidates)
-        self._seed_iteration(l_now, num_episodes, candidates)
+        free_episodes = num_episodes if reward_free_episodes is None else reward_free_episodes
+        self._seed_iteration(l_now, num_episodes, candidates, free_episodes)
         chosen = torch.zeros(self.trial_dims, dtype=torch.long)
         j_mean = j_all = free = None
         reward_free_transitions = torch.zeros(self.trial_dims, dtype=torch.long)
@@ -116,7 +158,7 @@ class RewardBuyer:
                 candidates,
                 earlier,
                 iteration=l_now,
-                num_episodes=num_episodes,
+                num_episodes=free_episodes,
                 flattening=flattening,
             )
             chosen = selection.index
@@ -134,6 +176,7 @@ class RewardBuyer:
             j_all=j_all,
             reward_free_transitions=reward_free_transitions.tolist(),
             seconds=time.perf_counter() - started,
+            cpu_seconds=time.process_time() - cpu_started,
         )
         self.choice, self.bought, self._fresh = choice, {}, True
         self.reward_free_transitions += reward_free_transitions
@@ -142,14 +185,16 @@ class RewardBuyer:
         self.durable.put_selection(l_now, choice.row(), free)
         return free
 
-    def _seed_iteration(self, iteration: int, num_episodes: int, candidates) -> None:
+    def _seed_iteration(
+        self, iteration: int, num_episodes: int, candidates, free_episodes: int
+    ) -> None:
         """Re-seed the environments of iteration l (the policies' streams are derived per use):
         the reward-free env is the one the candidates are collected on (``T·Z·K·M_l`` rows for
         the library's policies, ``Z·M_l`` candidate by candidate with the user's own)."""
         rows = self._trials * num_episodes
         seed_env(self.envs(rows), *self.streams.env_seeds(iteration, "rewarded_env"))
         if self.selector is not None:
-            batch = self.selector.collection_rows(candidates, num_episodes)
+            batch = self.selector.collection_rows(candidates, free_episodes)
             self.selector.seed_env(batch, *self.streams.env_seeds(iteration, "reward_free_env"))
 
     def buy(self, l_now: int, num_episodes: int, policy, *, kept: int = 0) -> TensorDict:
@@ -168,7 +213,7 @@ class RewardBuyer:
         for episodes in [missing] if one_slice else [[m] for m in missing]:
             self.buy_slice(l_now, episodes, policy, reseed=not one_slice, kept=kept)
         bought = torch.stack([self.bought[m] for m in range(num_episodes)], len(self.trial_dims))
-        self.choice, self.bought = None, {}
+        self.pending, self.choice, self.bought = self.choice, None, {}
         return bought
 
     def buy_slice(
@@ -195,7 +240,7 @@ class RewardBuyer:
                 self.envs(rows),
                 self.policies.with_rule(policy, rule).with_streams(streams)
                 if rule is not None
-                else self.extra_candidates[int(chosen) - len(self.policies.candidate_rules(l_now))],
+                else self._extra(self.choice, l_now),
                 num_episodes=len(episodes),
                 num_steps=self.num_steps,
                 rewarded=True,

@@ -2,15 +2,13 @@
 
 :class:`~torch_api.loop.iteration.ActivePolicyIteration` commits every choice of a sampling
 policy, every slice of rewarded episodes and every iteration's record through a
-:class:`DurableRun` (a :class:`~torch_api.runs.store.RunStore`, or nothing). Here also: what
-identifies an env or a basis (:func:`fingerprint`), and the loop's state rebuilt from a
-verified store (:func:`restore`, a :class:`Restored`), checked before anything is changed.
+:class:`DurableRun` (a :class:`~torch_api.runs.store.RunStore`, or nothing). Here also: the
+loop's state rebuilt from a verified store (:func:`restore`, a :class:`Restored`), checked
+before anything is changed.
 """
 
 from __future__ import annotations
 
-import hashlib
-import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,109 +17,83 @@ from typing import NamedTuple
 
 import torch
 from tensordict import TensorDict
-from torch import nn
 
-from torch_api._moved import stable_name
 from torch_api.data.buffer import EpisodeBuffer, validate_episodes
 from torch_api.loop.records import Choice, IterationRecord, per_trial_count
 from torch_api.runs.store import CorruptRunError, RunStore, StoredRun
 
-__all__ = ["DurableRun", "Restored", "RunLayout", "fingerprint", "plain", "qualified", "restore"]
-
-
-def plain(value):
-    """A JSON-able, exact description of a setting's value (tensors by digest)."""
-    if isinstance(value, torch.Tensor):
-        data = value.detach().cpu().contiguous()
-        digest = hashlib.sha256(data.view(torch.uint8).numpy().tobytes()).hexdigest()
-        return {"dtype": str(data.dtype), "shape": list(data.shape), "sha256": digest}
-    if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
-    if isinstance(value, (bool, int, str)) or value is None:
-        return value
-    if isinstance(value, (tuple, list)) and all(
-        isinstance(v, (bool, int, float, str)) for v in value
-    ):
-        return [plain(v) for v in value]
-    return None  # not a plain setting: left out
-
-
-def qualified(function) -> str:
-    """A function's module and name (how a setting that is a function is told apart)."""
-    name = getattr(function, "__qualname__", type(function).__qualname__)
-    return f"{stable_name(getattr(function, '__module__', None))}.{name}"
-
-
-_NOT_IDENTITY = {"batch_size", "seed", "rng", "device", "training", "num_envs", "nthread"}
-
-
-def fingerprint(obj) -> dict:
-    """What identifies an environment or a basis: its class, the tensors of its state and its
-    public plain attributes (numbers, strings, tensors), batch size, seeds and device left out.
-    """
-    out = {"class": f"{stable_name(type(obj).__module__)}.{type(obj).__qualname__}"}
-    if isinstance(obj, nn.Module):
-        out |= {f"state.{k}": plain(v) for k, v in obj.state_dict().items()}
-    for name, value in sorted(vars(obj).items()):
-        if name.startswith("_") or name in _NOT_IDENTITY:
-            continue
-        described = plain(value)
-        if described is not None:
-            out[name] = described
-    return out
+__all__ = ["DurableRun", "Restored", "RunLayout", "restore"]
 
 
 class DurableRun:
-    """The run's store at ``path`` (or none), through which the loop commits what it buys.
+    """A run's store at ``path`` (or none), through which the loop commits what it buys.
 
-    Each commit calls ``on_commit()`` after it (the loop's ``on_checkpoint`` hook). Without a
-    path every ``put_*`` does nothing.
+    Made by the caller and handed to the loop
+    (``ActivePolicyIteration(spec, ..., durable=DurableRun(path, resume=True))``), which opens it
+    with the run's identity and layout (:meth:`open`): the store is created, or a stored run of
+    the same identity is read back and verified for the loop to continue. Each commit calls
+    ``on_commit()`` after it. Without a path every ``put_*`` does nothing.
 
     Args:
         path: the store's SQLite file, or None (a run in memory only).
-        settings: what gives the stored data its meaning (a resume must agree on all of it),
-            asked for when a store is opened or read.
-        layout: what stored rows are read against (:func:`restore`).
-        resume, overwrite: as :class:`~torch_api.runs.store.RunStore`.
-        on_commit: called after every commit.
+        resume: continue the run stored there (the same specification, env and basis); a
+            missing or empty store starts fresh.
+        overwrite: discard a stored run.
+        on_commit: called after every commit (e.g. to count commits, or stop a test run).
 
     Attributes:
-        store: the :class:`~torch_api.runs.store.RunStore`, or None.
-        restored: the state of the stored run to continue (verified), or None (a fresh start).
+        store: the :class:`~torch_api.runs.store.RunStore` once opened, or None.
     """
 
     def __init__(
         self,
         path: str | os.PathLike | None,
         *,
-        settings: Callable[[], dict],
-        layout: RunLayout,
         resume: bool = False,
         overwrite: bool = False,
-        on_commit: Callable[[], None] = lambda: None,
+        on_commit: Callable[[], None] | None = None,
     ) -> None:
+        if path is None and (resume or overwrite):
+            raise ValueError("resume and overwrite need the path of a store")
         self.path = None if path is None else Path(path)
-        self.settings, self.layout, self.on_commit = settings, layout, on_commit
+        self.resume, self.overwrite = bool(resume), bool(overwrite)
+        self.on_commit = on_commit or (lambda: None)
         self.store: RunStore | None = None
-        self.restored: Restored | None = None
-        if self.path is None:
-            return
-        self.store = RunStore(self.path, config=settings(), resume=resume, overwrite=overwrite)
-        if not self.store.started_fresh:
-            try:
-                self.restored = restore(self.store.stored, self.path, layout)
-            except BaseException:
-                self.store.close()
-                raise
+        self.layout: RunLayout | None = None
 
-    def read(self, path: str | os.PathLike) -> Restored:
-        """The state of the run stored at ``path`` (read only), made with these settings.
+    def open(self, identity: dict, layout: RunLayout) -> Restored | None:
+        """Open (and lock) the store for a run of ``identity``; returns the state of the stored
+        run to continue (verified), or None (a fresh start, or no store).
 
         Raises:
-            CorruptRunError: the file fails a check, or was made with other settings.
+            StoreError: the run is in use, unwritable, damaged, or stored with another
+                identity (the differing fields named).
+        """
+        if self.store is not None:
+            raise RuntimeError(f"the store {self.path} is open already")
+        self.layout = layout
+        if self.path is None:
+            return None
+        self.store = RunStore(
+            self.path, config=identity, resume=self.resume, overwrite=self.overwrite
+        )
+        if self.store.started_fresh:
+            return None
+        try:
+            return restore(self.store.stored, self.path, layout)
+        except BaseException:
+            self.store.close()
+            raise
+
+    @staticmethod
+    def read(path: str | os.PathLike, identity: dict, layout: RunLayout) -> Restored:
+        """The state of the run stored at ``path`` (read only), made with ``identity``.
+
+        Raises:
+            CorruptRunError: the file fails a check, or was made with another identity.
         """
         stored = RunStore.read(path)
-        mine = RunStore.normalise(self.settings())
+        mine = RunStore.normalise(identity)
         if stored.config != mine:
             differ = sorted(
                 k for k in stored.config.keys() | mine.keys() if stored.config.get(k) != mine.get(k)
@@ -129,7 +101,7 @@ class DurableRun:
             raise CorruptRunError(
                 f"the run stored in {path} was made with other settings: {differ}"
             )
-        return restore(stored, Path(path), self.layout)
+        return restore(stored, Path(path), layout)
 
     @property
     def closed(self) -> bool:

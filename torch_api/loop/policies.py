@@ -65,8 +65,8 @@ class LoopPolicies:
         return True
 
     def evaluation(self, theta: torch.Tensor, iteration: int) -> LinearQPolicy:
-        """pi_l of θ ``[*T, B]``: ε-greedy with ε = ``epsilon_schedule(l)`` (eq. 57-58), or
-        softmax (eq. 7)."""
+        """pi_l of θ ``[*T, B]``: ε-greedy with ε = ε_l (``spec.policy.epsilon_of(l)``,
+        eq. 57-58), or softmax (eq. 7)."""
         return LinearQPolicy(
             basis=self.basis,
             theta=theta,

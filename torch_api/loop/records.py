@@ -22,6 +22,8 @@ class Choice:
             (an int without trial dims; runs stored before it was per trial hold the total of
             all trials, :func:`per_trial_count`).
         seconds: wall time of the choice.
+        cpu_seconds: CPU time of this process spent on the choice (the reward-free collection
+            and J; worker processes' time not included), or None in runs stored before it.
     """
 
     chosen: torch.Tensor
@@ -30,6 +32,7 @@ class Choice:
     j_all: list | None
     reward_free_transitions: int | list
     seconds: float
+    cpu_seconds: float | None = None
 
     def row(self) -> dict:
         """The choice as the store keeps it (JSON-able)."""
@@ -69,6 +72,7 @@ class IterationRecord:
             trial's own, as ``rewarded_transitions``.
         performance: what the ``evaluate`` callback returned for pi_{l+1}, or None.
         seconds: wall time of the iteration (evaluation callback excluded).
+        selection_cpu_seconds: CPU time of step 1 (reward-free collection and J; 0 when passive).
         theta: θ_l ``[*T][B]``.
         flattening: ν of the fit's flattened weights ``w^ν`` (per trial with ``num_trials``;
             chosen by IWCV with ``flattening="iwcv"``); None in runs stored before it existed.
@@ -89,6 +93,7 @@ class IterationRecord:
     theta: list = field(repr=False)
     flattening: float | list | None = None
     effective_sample_size: float | list | None = None
+    selection_cpu_seconds: float | None = None
 
     @classmethod
     def of(cls, iteration: int, choice: Choice, fitted, **numbers) -> IterationRecord:
@@ -104,6 +109,7 @@ class IterationRecord:
             theta=fitted.theta.cpu().tolist(),
             flattening=fitted.flattening.tolist(),
             effective_sample_size=fitted.ess.tolist(),
+            selection_cpu_seconds=choice.cpu_seconds,
             **numbers,
         )
 
@@ -133,6 +139,7 @@ class IterationRecord:
             "flattening": self.flattening,
             "effective_sample_size": self.effective_sample_size,
             "seconds": self.seconds,
+            "selection_cpu_seconds": self.selection_cpu_seconds,
             **(self.performance or {}),
         }
 

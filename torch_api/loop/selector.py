@@ -15,6 +15,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from torch_api._checks import _check_device
 from torch_api.collection.candidates import PolicyStack, choose_collection, rollout_rows
 from torch_api.collection.collect import EnvPerBatch
 from torch_api.core.criterion import Criterion, j_eq46, j_values
@@ -68,7 +69,7 @@ class SamplingPolicySelector:
     Passed to :class:`~torch_api.loop.iteration.ActivePolicyIteration` as ``selector=`` it is given
     the loop's settings (:meth:`bind`): leave ``psi``, ``num_episodes``, ``num_steps``,
     ``lam``, ``fit``, ``device`` and ``generator`` unset then (``env`` too, to use the loop's
-    env), e.g. ``SamplingPolicySelector(env=reward_free_env, num_repeats=5)``.
+    env), e.g. ``SamplingPolicySelector(env=reward_free_env, num_workers=2)``.
 
     Args:
         env: a TorchRL env with discrete actions used for reward-free rollouts, or a callable
@@ -77,7 +78,8 @@ class SamplingPolicySelector:
         psi: the psi_hat module (basis, γ, grouping).
         num_episodes: M, reward-free episodes per candidate and repeat (or per call).
         num_steps: N.
-        num_repeats: Z (J' is the mean of Z values of J).
+        num_repeats: Z (J' is the mean of Z values of J; default 5). A loop gives its own
+            (``spec.selection.num_repeats``).
         lam: λ (default :data:`~torch_api.core.solve.DEFAULT_LAMBDA`).
         generator: random stream of the sampling (default: the candidates' own).
         device: where psi_hat and J are computed (default: where the episodes are); rollouts
@@ -126,7 +128,7 @@ class SamplingPolicySelector:
         psi: PsiHat | None = None,
         num_episodes: int | None = None,
         num_steps: int | None = None,
-        num_repeats: int = 5,
+        num_repeats: int | None = None,
         lam: float | None = None,
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
@@ -156,6 +158,7 @@ class SamplingPolicySelector:
             "psi": psi,
             "num_episodes": num_episodes,
             "num_steps": num_steps,
+            "num_repeats": num_repeats,
             "lam": lam,
             "fit": fit,
             "device": device,
@@ -165,10 +168,10 @@ class SamplingPolicySelector:
         self.psi = psi
         self.num_episodes = None if num_episodes is None else int(num_episodes)
         self.num_steps = None if num_steps is None else int(num_steps)
-        self.num_repeats = int(num_repeats)
+        self.num_repeats = 5 if num_repeats is None else int(num_repeats)
         self.lam = DEFAULT_LAMBDA if lam is None else float(lam)
         self.generator = generator
-        self.device = None if device is None else torch.device(device)
+        self.device = None if device is None else _check_device(device)  # a GPU that is there
         self.max_design_bytes = int(max_design_bytes)
         self.num_workers = int(num_workers)
         self.fit = "brm" if fit is None else fit
@@ -195,6 +198,7 @@ class SamplingPolicySelector:
         env: EnvBase | Callable[[int], EnvBase],
         psi: PsiHat,
         num_steps: int,
+        num_repeats: int,
         lam: float,
         fit: str,
         device: torch.device | str | None,
@@ -203,10 +207,10 @@ class SamplingPolicySelector:
         """This selector with a loop's settings: a new selector, this one left as it is.
 
         :class:`~torch_api.loop.iteration.ActivePolicyIteration` binds the selector it is given to
-        its psi_hat (basis, γ), N, λ, fit and device; ``env`` is used where this selector has
-        none, and the loop's ``collector`` where this selector has neither an env nor a
-        collector of its own (the reward-free episodes are then read from the user's collector
-        too, with the reward dropped). M_l (the schedule's, given per call:
+        its psi_hat (basis, γ), N, Z (``spec.selection.num_repeats``), λ, fit and device;
+        ``env`` is used where this selector has none, and the loop's ``collector`` where this
+        selector has neither an env nor a collector of its own (the reward-free episodes are
+        then read from the user's collector too, with the reward dropped). M (given per call:
         :meth:`select`'s ``num_episodes``) and the sampling streams (its candidates bring its
         reward-free streams) are the loop's too: a selector given any of these settings, or a
         ``generator``, is refused.
@@ -227,7 +231,7 @@ class SamplingPolicySelector:
             env=None if loops_collector else self.env if self.env is not None else env,
             psi=psi,
             num_steps=num_steps,
-            num_repeats=self.num_repeats,
+            num_repeats=num_repeats,
             lam=lam,
             device=device,
             max_design_bytes=self.max_design_bytes,
@@ -236,6 +240,11 @@ class SamplingPolicySelector:
             collector=collector if loops_collector else self.collector,
             criterion=self.criterion,
         )
+
+    def know_actions(self, encoding) -> None:
+        """Collect with the env's action encoding (an
+        :class:`~torch_api.data.actions.ActionEncoding`), once the loop has read it."""
+        self.action_encoding = encoding
 
     def close(self) -> None:
         """Close the reward-free envs built from an env factory (see ``EnvPerBatch.close``)."""

@@ -25,6 +25,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from counter_rng import CounterStreams
+from torch_api._checks import _check_not_meta
 from torch_api.data.actions import ActionEncoding
 
 __all__ = ["ActionProbsPolicy", "Streams", "param_dims_of", "sample_actions"]
@@ -54,7 +55,9 @@ def sample_actions(probs: torch.Tensor, streams: Streams = None) -> torch.Tensor
     """Draw one action index per row: ``probs [..., A] -> [...]`` (long), by the inverse CDF.
 
     Args:
-        probs: action probabilities ``[..., A]``.
+        probs: action probabilities ``[..., A]``: finite, non-negative, each row summing to 1
+            within rounding (else a ``ValueError`` with the sums found: an action drawn from a
+            row that sums to 0.6 would take the rest of the mass silently).
         streams: counter-based streams (the leading dims flattened, trial-major, split into
             one equal, consecutive block per stream: block ``b`` is drawn from stream ``b``
             alone, so a batch of T trials draws exactly what T separate draws would, in one
@@ -68,6 +71,9 @@ def sample_actions(probs: torch.Tensor, streams: Streams = None) -> torch.Tensor
         True
     """
     streams = _check_streams(streams)
+    _check_not_meta("probs", probs)
+    cdf = probs.cumsum(-1)
+    _check_probs(probs, cdf)
     shape = probs.shape[:-1]
     if isinstance(streams, CounterStreams):
         uniform = streams.uniform(shape if len(shape) else (1,), device=probs.device)
@@ -76,8 +82,34 @@ def sample_actions(probs: torch.Tensor, streams: Streams = None) -> torch.Tensor
         device = "cpu" if streams is None else streams.device
         uniform = torch.rand(shape, generator=streams, dtype=torch.float64, device=device)
     uniform = uniform.to(probs.device)
-    cdf = probs.cumsum(-1)
     return (cdf < uniform.unsqueeze(-1)).sum(-1).clamp(max=probs.shape[-1] - 1)
+
+
+PROBS_RTOL = 1e-6  # a row of probabilities may sum to 1 within this (float64; more in float32)
+
+
+def _check_probs(probs: torch.Tensor, cdf: torch.Tensor) -> None:
+    """Refuse rows of ``probs [..., A]`` that are no distribution: an entry negative or not
+    finite, or a row whose sum (``cdf[..., -1]``) is off 1 by more than the dtype's rounding
+    (:data:`PROBS_RTOL` in float64, ``4·A·eps`` where that is larger). One reduction each and
+    one synchronisation; the details are read only for the message."""
+    if not probs.numel():
+        return
+    num_actions = probs.shape[-1]
+    eps = torch.finfo(probs.dtype).eps if probs.is_floating_point() else 0.0
+    tol = max(PROBS_RTOL, 4 * num_actions * eps)
+    total = cdf[..., -1].to(torch.float64)
+    off, lowest = torch.stack([(total - 1).abs().max(), probs.min().to(torch.float64)]).tolist()
+    if not (math.isfinite(off) and math.isfinite(lowest) and lowest >= 0):
+        first = probs[(probs < 0) | ~torch.isfinite(probs)].reshape(-1)[0].item()
+        raise ValueError(f"probs must be finite and non-negative, got {first}")
+    if off > tol:
+        wrong = ((total - 1).abs() > tol).sum().item()
+        raise ValueError(
+            f"probs rows must sum to 1 (within {tol:.3g}), found sums from "
+            f"{total.min().item():.6g} to {total.max().item():.6g} ({wrong} of {total.numel()} "
+            "rows off)"
+        )
 
 
 def param_dims_of(policy) -> tuple[int, ...]:

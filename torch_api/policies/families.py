@@ -13,6 +13,9 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from torch_api._checks import _check_finite
+from torch_api.core.improvement import EPSILON_ROUNDING
+
 __all__ = [
     "IMPROVEMENTS",
     "PAPER_EPSILON_OFFSETS",
@@ -35,15 +38,50 @@ def paper_epsilon(iteration: int) -> float:
 
 
 def candidate_epsilons(epsilon: float, offsets: Sequence[float] = PAPER_EPSILON_OFFSETS) -> list:
-    """ε of the sampling-policy candidates of eq. 59: ``[ε + o for o in offsets]`` capped at 1."""
+    """ε of the sampling-policy candidates of eq. 59: ``[ε + o for o in offsets]``.
+
+    Every ``ε + o`` must lie in [0, 1] (an ε above 1 is no ε-greedy policy; it is refused, not
+    clipped); a sum within rounding (1e-12) of 1, such as the paper's ``0.15 + 0.85``, is 1.
+
+    Example:
+        >>> candidate_epsilons(0.15)
+        [0.15, 0.3, 0.65, 1.0]
+    """
     if not 0 <= epsilon <= 1:
         raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}")
-    return [min(1.0, epsilon + o) for o in offsets]
+    out = []
+    for o in offsets:
+        value = epsilon + o
+        if not -EPSILON_ROUNDING <= value <= 1 + EPSILON_ROUNDING:
+            raise ValueError(
+                f"epsilon + offset must lie in [0, 1], got {epsilon:g} + {o:g} = {value:g}"
+            )
+        out.append(min(1.0, max(0.0, value)))
+    return out
+
+
+def _check_offsets(epsilon_schedule: Callable[[int], float], offsets: tuple) -> None:
+    """The candidates of iteration 1, ``ε_1 + offset``, must be ε-greedy policies: ε_1 + o in
+    [0, 1] for every offset (the paper's ε_l = 0.15 / l is largest at l = 1; a schedule that
+    rises later is checked again in each iteration, :meth:`EpsilonGreedyFamily.candidate_rules`)."""
+    _check_finite("candidate_offsets", offsets)
+    first = epsilon_schedule(1)
+    if not 0 <= first <= 1:
+        raise ValueError(f"epsilon_schedule(1) = {first} lies outside [0, 1]")
+    for o in offsets:
+        value = first + o
+        if not -EPSILON_ROUNDING <= value <= 1 + EPSILON_ROUNDING:
+            raise ValueError(
+                f"candidate_offsets {list(offsets)} make a candidate that is no ε-greedy policy: "
+                f"ε_1 + {o:g} = {value:g}; every ε_1 + offset must lie in [0, 1] "
+                f"(ε_1 = epsilon_schedule(1) = {first:g})"
+            )
 
 
 class EpsilonGreedyFamily:
     """The paper's family: pi_l ε-greedy with ε_l = ``epsilon_schedule(l)``, candidates
-    ε_l + offset, capped at 1 (eq. 57-59).
+    ε_l + offset (eq. 57-59), each in [0, 1]: offsets that push ε_1 + offset outside are
+    refused when the family is made.
 
     Example:
         >>> family = EpsilonGreedyFamily()
@@ -61,6 +99,7 @@ class EpsilonGreedyFamily:
     ) -> None:
         if not offsets:
             raise ValueError("candidate_offsets must not be empty")
+        _check_offsets(epsilon_schedule, tuple(offsets))
         self.epsilon_schedule = epsilon_schedule
         self.offsets = tuple(offsets)
 
@@ -77,7 +116,13 @@ class EpsilonGreedyFamily:
 
     def candidate_rules(self, iteration: int) -> torch.Tensor:
         """ε of the K candidates of iteration l, float64 ``[K]``; the first is pi_l's."""
-        eps = self.epsilon_schedule(iteration)
+        eps = self.evaluation_rule(iteration)["epsilon"]
+        for o in self.offsets:
+            if not -EPSILON_ROUNDING <= eps + o <= 1 + EPSILON_ROUNDING:
+                raise ValueError(
+                    f"iteration {iteration}: ε_{iteration} + {o:g} = {eps + o:g} lies outside "
+                    f"[0, 1] (candidate_offsets {list(self.offsets)}): no ε-greedy candidate"
+                )
         return torch.tensor(candidate_epsilons(eps, self.offsets), dtype=torch.float64)
 
     def settings(self, last: int) -> list | None:

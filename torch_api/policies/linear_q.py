@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torch_api._checks import _check_not_meta
 from torch_api.core.basis import as_features
 from torch_api.core.improvement import (
     TIE_BREAKS,
@@ -65,6 +66,7 @@ class TabularPolicy(ActionProbsPolicy):
     """
 
     def __init__(self, *, table: torch.Tensor, state_index, **io) -> None:
+        _check_not_meta("table", table)
         table = torch.as_tensor(table, dtype=torch.float64)
         if table.ndim < 2:
             raise ValueError(f"table must have shape [..., S, A], got {tuple(table.shape)}")
@@ -127,8 +129,9 @@ class LinearQPolicy(ActionProbsPolicy):
     Args:
         basis: module with ``phi_all(obs [..., d]) -> [..., A, B]`` and ``num_features``.
         theta: ``[B]`` or ``[*T, B]`` (a leading trial dimension prefixing the observation dims).
-        epsilon: ε of the ε-greedy rule (0 is greedy), a number or a ``[*T]`` tensor (one per
-            trial). Exclusive with ``beta``.
+        epsilon: ε in [0, 1] of the ε-greedy rule (0 is greedy, 1 uniform), a number or a
+            ``[*T]`` tensor (one per trial); a value outside [0, 1] is refused. Exclusive with
+            ``beta``.
         beta: temperature of the softmax rule (eq. 7), a number or ``[*T]``. Exclusive with
             ``epsilon``.
         tie_break: how the ε-greedy rule shares the greedy mass among actions whose Q̂ ties for
@@ -182,6 +185,7 @@ class LinearQPolicy(ActionProbsPolicy):
                 f"give exactly one of epsilon (ε-greedy) or beta (softmax), got epsilon={epsilon}, "
                 f"beta={beta}"
             )
+        _check_not_meta("theta", theta)
         theta = torch.as_tensor(theta, dtype=torch.float64)
         if theta.ndim == 0 or theta.shape[-1] != basis.num_features:
             raise ValueError(
@@ -191,7 +195,7 @@ class LinearQPolicy(ActionProbsPolicy):
         if not torch.isfinite(theta).all():
             raise ValueError("theta contains NaN or inf")
         if epsilon is not None:
-            epsilon = _check_epsilon(epsilon)
+            epsilon = _check_epsilon(epsilon, at_most_one=True)
         if beta is not None:
             beta = torch.as_tensor(beta, dtype=torch.float64)
             if not torch.isfinite(beta).all() or (beta <= 0).any():

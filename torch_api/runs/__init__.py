@@ -4,6 +4,7 @@
 :mod:`torch_api.runs.store`               :class:`RunStore`: a run in SQLite, one writer
 :mod:`torch_api.runs.store_read`          reading a store back, verified (:class:`StoredRun`)
 :mod:`torch_api.runs.store_files`         the files around the database, atomic creation
+:mod:`torch_api.runs.files`               result files written atomically, never via a link
 :mod:`torch_api.runs.store_errors`        one exception per cause
 :mod:`torch_api.runs.codec`               TensorDicts as bytes without pickle
 :mod:`torch_api.runs.run_guard`           the writer's lock, symlink and signal guards

@@ -11,12 +11,15 @@ room, and the results concatenated along the trial axis. For environments with
 work alternates between native physics and single-threaded algebra, two or more chunks in flight
 keep every core busy. ``backend="ray"`` needs the ``ray`` extra (``pip install torch-api[ray]``).
 
-Workers die with their parent: a local worker asks the kernel for SIGKILL when its parent dies
-(Linux ``PR_SET_PDEATHSIG``) and, everywhere, a watchdog thread ends it once its parent is gone;
-a Ray task on the parent's host does the same when the parent process is gone. An interrupted
+Workers die with their parent: a reaper process SIGKILLs the local workers (and what they
+started) within a fraction of a second of the parent's death, even while they still import
+torch (:func:`~torch_api.runs.lifetime.workers_die_with_this_process`, Linux); a local worker
+also asks the kernel for SIGKILL when its parent dies (``PR_SET_PDEATHSIG``) and, everywhere, a
+watchdog thread ends it once its parent is gone; a Ray task on the parent's host does the same
+when the parent process is gone. An interrupted
 ``run_chunks`` (SIGINT, SIGTERM, an error) terminates its local workers before returning. A
 worker killed half-way through a chunk loses at most what its run had not yet committed; with
-``ActivePolicyIteration(checkpoint_path=...)`` the run's lock keeps a resume from racing a
+``ActivePolicyIteration(durable=DurableRun(path))`` the run's lock keeps a resume from racing a
 worker that is still finishing.
 """
 
@@ -33,7 +36,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from torch_api.runs.lifetime import die_with_parent
+from torch_api.runs.lifetime import die_with_parent, workers_die_with_this_process
 from torch_api.streams import trial_seeds_of
 
 __all__ = ["BACKENDS", "run_chunks", "split_trials", "threads_per_worker", "trial_seeds"]
@@ -84,8 +87,9 @@ def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
-def _init_worker(threads: int, parent: int) -> None:
-    die_with_parent(parent)
+def _init_worker(threads: int, parent: int, direct: bool = True) -> None:
+    # (a forkserver's worker is the server's child: it watches the caller by its pid)
+    die_with_parent(parent, direct=direct)
     # Ctrl-C reaches the whole process group: the parent alone handles it (and ends the
     # workers), so a worker does not print a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -123,6 +127,39 @@ def _check_picklable(fn, start_method: str) -> None:
             f"start_method={start_method!r} receive it pickled: pass a top-level function, or "
             "start_method='fork' (POSIX) to let the workers inherit it"
         ) from error
+
+
+def _run_in_pool(fn, chunks, workers: int, start_method: str, done) -> list:
+    """The chunks in a pool of local worker processes (``backend="processes"``)."""
+    pool = ProcessPoolExecutor(
+        max_workers=min(workers, len(chunks)),
+        mp_context=multiprocessing.get_context(start_method),
+        initializer=_init_worker,
+        initargs=(threads_per_worker(workers), os.getpid(), start_method != "forkserver"),
+    )
+    global _INHERITED
+    _INHERITED = (fn, chunks)  # before the first worker forks (they start on submit)
+    try:
+        if start_method == "fork":  # the workers hold fn and the chunks already
+            futures = {pool.submit(_run_inherited, i): i for i in range(len(chunks))}
+        else:
+            futures = {pool.submit(fn, chunk): i for i, chunk in enumerate(chunks)}
+        results = [None] * len(chunks)
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            done(futures[future], results[futures[future]])
+    except BaseException:  # interrupted or failed: no worker outlives the call
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        for process in processes:
+            process.terminate()  # SIGTERM: a commit in flight completes (SQLite)
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.join(timeout=10)
+        raise
+    finally:
+        _INHERITED = None
+    pool.shutdown()
+    return results
 
 
 def _import_ray():
@@ -198,35 +235,8 @@ def run_chunks(
             raise ValueError(f"workers must be >= 1, got {workers}")
         if start_method != "fork":
             _check_picklable(fn, start_method)
-        pool = ProcessPoolExecutor(
-            max_workers=min(workers, len(chunks)),
-            mp_context=multiprocessing.get_context(start_method),
-            initializer=_init_worker,
-            initargs=(threads_per_worker(workers), os.getpid()),
-        )
-        global _INHERITED
-        _INHERITED = (fn, chunks)  # before the first worker forks (they start on submit)
-        try:
-            if start_method == "fork":  # the workers hold fn and the chunks already
-                futures = {pool.submit(_run_inherited, i): i for i in range(len(chunks))}
-            else:
-                futures = {pool.submit(fn, chunk): i for i, chunk in enumerate(chunks)}
-            results = [None] * len(chunks)
-            for future in as_completed(futures):
-                results[futures[future]] = future.result()
-                done(futures[future], results[futures[future]])
-        except BaseException:  # interrupted or failed: no worker outlives the call
-            processes = list((getattr(pool, "_processes", None) or {}).values())
-            for process in processes:
-                process.terminate()  # SIGTERM: a commit in flight completes (SQLite)
-            pool.shutdown(wait=False, cancel_futures=True)
-            for process in processes:
-                process.join(timeout=10)
-            raise
-        finally:
-            _INHERITED = None
-        pool.shutdown()
-        return results
+        with workers_die_with_this_process():  # even while they still import torch
+            return _run_in_pool(fn, chunks, workers, start_method, done)
     ray = _import_ray()
     started_here = not ray.is_initialized()
     if started_here:

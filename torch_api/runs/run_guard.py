@@ -20,7 +20,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from torch_api.runs.store_errors import RunInUseError, StoreWriteError
+from torch_api.runs.store_errors import RunInUseError, StoreWriteError, SymlinkRefusedError
 
 __all__ = ["lock_run", "refuse_symlinks", "signals_held"]
 
@@ -70,11 +70,12 @@ def _restore_handlers(before: dict) -> BaseException | None:
 
 
 def refuse_symlinks(path: Path) -> None:
-    """Raise :class:`StoreWriteError` if the run's database or one of its files is a symlink."""
+    """Raise :class:`SymlinkRefusedError` (a :class:`StoreWriteError`) if the run's database or
+    one of its files is a symlink."""
     suffixes = ("-wal", "-shm", "-journal", ".lock", ".commits", ".commits.new", ".new")
     for p in (path, *(Path(f"{path}{s}") for s in suffixes)):
         if p.is_symlink():
-            raise StoreWriteError(f"{p} is a symbolic link; a run is never written through one")
+            raise SymlinkRefusedError(f"{p} is a symbolic link; a run is never written through one")
 
 
 def lock_run(path: Path, what: str | None = None) -> int:

@@ -3,8 +3,9 @@
 Rewarded episodes are expensive (on a robot each reward is a measured hit), so a run keeps
 them in an SQLite database (standard library) that survives kills at any moment:
 
-* write-ahead log and ``synchronous=FULL``: a committed transaction is on the disk, a
-  transaction cut by a crash is rolled back on the next open, never half-applied;
+* a rollback journal and ``synchronous=EXTRA``: a committed transaction is in the database
+  file, synced, before the commit returns; a transaction cut by a crash is rolled back on the
+  next open, never half-applied;
 * one row per bought episode index ``(l, m)`` holding its tensors ``[*T, N]``, one row per
   iteration's selection (the chosen candidates, J', the reward-free episodes) and one per
   completed iteration (its :class:`~torch_api.loop.iteration.IterationRecord`, θ_l included);
@@ -14,8 +15,9 @@ them in an SQLite database (standard library) that survives kills at any moment:
 * one writer, never through a symlink, writes never interrupted half-way by SIGINT/SIGTERM
   (:mod:`torch_api.runs.run_guard`); the errors are in :mod:`torch_api.runs.store_errors`;
 * created atomically (an interrupt at any instant leaves no store or a complete empty one), and
-  a commit counter beside it that a shortened write-ahead log cannot hide
-  (:mod:`torch_api.runs.store_files`): a store that lost committed rows is refused, never restarted.
+  its count of commits kept twice, inside the database and in a counter file beside it
+  (:mod:`torch_api.runs.store_files`): a store that lost committed rows, or a counter lost or
+  damaged beside a store that holds commits, is refused, never resumed short or restarted.
 
 The settings that give the stored data its meaning (``config``) are stored with it and must
 match when a run is resumed.
@@ -41,7 +43,12 @@ from torch_api.runs.store_errors import (
     StoreError,
     StoreWriteError,
 )
-from torch_api.runs.store_files import create_atomically, lost_rows_error, write_counter
+from torch_api.runs.store_files import (
+    create_atomically,
+    lost_rows_error,
+    use_rollback_journal,
+    write_counter,
+)
 from torch_api.runs.store_read import (  # noqa: F401  (_digest: the tests forge rows with it)
     FORMAT,
     SCHEMA,
@@ -152,17 +159,19 @@ class RunStore:
 
     def _has_data(self) -> tuple[str | None, bool]:
         """A short description of what the store at path holds (None if nothing), and whether
-        it lost committed rows. Opened for writing (the lock is held): a hot journal or log
-        left by a killed writer is recovered before the store is judged."""
+        it lost committed rows or the counter that vouches for them. Opened for writing (the
+        lock is held): a hot journal or log left by a killed writer is recovered before the
+        store is judged."""
         try:
-            lost = lost_rows_error(self.path, *self._count(self.path)) is not None
-        except (CorruptRunError, sqlite3.DatabaseError, ValueError, RecursionError):
+            commits, episodes = self._count(self.path)
+            rows, done = self._count(self.path, "record")
+        except (sqlite3.DatabaseError, ValueError, RecursionError):
             return "a file that is not a readable run", False
+        lost = lost_rows_error(self.path, commits, episodes) is not None
         if not self.path.exists() or self.path.stat().st_size == 0:
             return ("a store that lost its file", True) if lost else (None, False)
-        rows, done = self._count(self.path, "record")
         if lost:
-            return "a run that lost committed rows", True
+            return "a run that lost committed rows or its counter", True
         if rows == 0 and done == 0:
             return None, False  # nothing bought yet (or a store with no tables): nothing to lose
         return f"{rows} bought episode rows, {done} completed iterations", False
@@ -205,8 +214,7 @@ class RunStore:
         try:
             db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             self._db = db
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute("PRAGMA synchronous=FULL")
+            use_rollback_journal(db)  # (a store made with a write-ahead log is converted)
         except sqlite3.DatabaseError as error:
             raise self._write_error(error) from None
         refuse_symlinks(self.path)
@@ -285,22 +293,27 @@ class RunStore:
             self._put(db, "record", (iteration,), _json(record))
 
     def close(self) -> None:
-        """Close the database (checkpointing its log into the file) and release the lock."""
-        if self._db is not None:
-            with contextlib.suppress(sqlite3.Error):
-                self._db.close()
-            self._db = None
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)  # releases the flock
-            self._lock_fd = None
+        """Close the database and release the lock; closing again does nothing.
+
+        Each handle is taken from the store before it is closed, with SIGINT/SIGTERM held
+        (:func:`~torch_api.runs.run_guard.signals_held`): a signal handled during or right
+        after a close never leaves the store holding a descriptor number that the next file
+        opened reuses, so a second ``close()`` never closes another store's lock.
+        """
+        with signals_held():
+            db, self._db = self._db, None
+            fd, self._lock_fd = self._lock_fd, None
+            if db is not None:
+                with contextlib.suppress(sqlite3.Error):
+                    db.close()
+            if fd is not None:
+                os.close(fd)  # releases the flock
 
     def __enter__(self) -> RunStore:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-    # -- reading ----------------------------------------------------------------------------
 
     # -- reading ----------------------------------------------------------------------------
 

@@ -13,6 +13,7 @@ __all__ = [
     "RunInUseError",
     "StoreError",
     "StoreWriteError",
+    "SymlinkRefusedError",
 ]
 
 
@@ -35,3 +36,8 @@ class RunExistsError(StoreError, FileExistsError):
 
 class StoreWriteError(StoreError, OSError):
     """The run cannot be written (read-only place, disk full, not a directory, ...)."""
+
+
+class SymlinkRefusedError(StoreWriteError):
+    """A file would have been written through a symbolic link (a run's file or a report);
+    the message names the link. Nothing was written."""

@@ -15,7 +15,7 @@ from tensordict import TensorDict
 
 from torch_api.runs.codec import decode_tensordict
 from torch_api.runs.store_errors import CorruptRunError
-from torch_api.runs.store_files import lost_rows_error
+from torch_api.runs.store_files import COMPANIONS, at_stake, lost_rows_error, unreadable_error
 
 __all__ = ["FORMAT", "StoredRun", "read_run"]
 
@@ -86,8 +86,19 @@ def read_run(path: str | os.PathLike) -> StoredRun:
         raise lost_rows_error(path, 0, 0) or CorruptRunError(f"no run is stored at {path}")
     try:
         return _read(path)
-    except CorruptRunError:
-        raise
+    except CorruptRunError as error:
+        if "commits" in str(error):  # (the counter's own refusals name them)
+            raise
+        raise CorruptRunError(f"{error}{at_stake(path)}") from None
+    except sqlite3.OperationalError as error:
+        journal = Path(f"{path}-journal")
+        if "readonly" in str(error) and journal.exists() and journal.stat().st_size:
+            raise CorruptRunError(
+                f"the run {path} was left inside a commit by a killed writer (its journal "
+                f"{journal} is still there): resume it (which opens it for writing and rolls "
+                "the commit back) before reading it; a reader never writes"
+            ) from None
+        raise unreadable_error(path, f"{type(error).__name__}: {error}") from None
     except (
         sqlite3.DatabaseError,
         ValueError,
@@ -96,21 +107,19 @@ def read_run(path: str | os.PathLike) -> StoredRun:
         UnicodeError,
         RecursionError,
     ) as error:
-        raise CorruptRunError(
-            f"cannot read the run {path}: {type(error).__name__}: {error}"
-        ) from None
+        raise unreadable_error(path, f"{type(error).__name__}: {error}") from None
 
 
 def _connect_read_only(path: Path) -> sqlite3.Connection:
     """A read-only connection; in a folder this process cannot write (no ``-shm`` can be
-    made there) a store with no log left is read as the immutable file it is."""
+    made there) a store with no log or journal left is read as the immutable file it is."""
     try:
         db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
         db.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return db
     except sqlite3.OperationalError:
-        wal = Path(f"{path}-wal")
-        if os.access(path.parent, os.W_OK) or (wal.exists() and wal.stat().st_size):
+        logs = [Path(f"{path}{suffix}") for suffix in COMPANIONS if suffix != "-shm"]
+        if os.access(path.parent, os.W_OK) or any(p.exists() and p.stat().st_size for p in logs):
             raise
         return sqlite3.connect(f"file:{path}?immutable=1", uri=True)
 
@@ -120,7 +129,7 @@ def _read(path: Path) -> StoredRun:
     try:
         check = db.execute("PRAGMA quick_check").fetchall()
         if check != [("ok",)]:
-            raise CorruptRunError(f"the run {path} fails SQLite's check: {check[:3]}")
+            raise unreadable_error(path, f"it fails SQLite's check: {check[:3]}")
 
         def rows(sql):
             return db.execute(sql).fetchall()
