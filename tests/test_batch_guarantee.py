@@ -8,12 +8,13 @@ outputs (trials 0-3 of ``--trials 4`` and ``--trials 8``).
 from __future__ import annotations
 
 import csv
+import importlib
 import json
+import sys
 from pathlib import Path
 
 import pytest
 import torch
-from _processes import run_example  # (tests/ is on sys.path)
 
 from envs.chain_walk import CENTERS, GAMMA, TAU, ChainWalkEnv
 from torch_api.core.basis import GaussianActionBasis
@@ -22,6 +23,7 @@ from torch_api.loop.spec import RunSpec
 from torch_api.runs.dispatch import trial_seeds
 
 SEED = 3
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def run(seeds: list[int]) -> dict:
@@ -83,7 +85,10 @@ def test_trials_of_a_batch_learn_what_they_learn_alone_or_in_any_batch():
 
 
 def _cli(script: str, out: Path, *args: str) -> None:
-    run_example(script, *args, "--out-dir", str(out))
+    """The example's command line, run in this process (its entry point, ``main(argv)``)."""
+    if str(EXAMPLES) not in sys.path:
+        sys.path.insert(0, str(EXAMPLES))
+    importlib.import_module(script.removesuffix(".py")).main([*args, "--out-dir", str(out)])
 
 
 def _rows_of_first_trials(path: Path, count: int) -> list[tuple]:

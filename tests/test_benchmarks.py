@@ -40,7 +40,7 @@ BENCHMARKS = ROOT / "benchmarks"
             "| 2 | processes | ",
         ),
         (
-            ["durability_attacks.py", "--kills", "0", "--signals", "1", "--damages", "4"]
+            ["durability_attacks.py", "--kills", "0", "--signals", "0", "--damages", "4"]
             + ["--commit-signals", "1"],
             "| all | ",
         ),
