@@ -161,6 +161,7 @@ class ActivePolicyIteration:
         z = 0 if spec.selection is None else spec.selection.num_repeats
         free_capacity = max(1, z * k * sum(map(self._free_episodes, schedule)))
         self.history: list[IterationRecord] = []
+        self._fitted = None  # step 3's fit of the coming iteration, until step 4 records it
         self.policy = self.policies.evaluation(self.theta, 1)
         self.durable = durable if durable is not None else DurableRun(None)
         self.buyer = RewardBuyer(
@@ -264,8 +265,7 @@ class ActivePolicyIteration:
         return self.buyer.choice or self.buyer.pending
 
     def sampling_policy(self) -> nn.Module:
-        """The chosen sampling policy with the iteration's streams: what :meth:`buy` collects
-        with, for a user buying the rewards in their own collector (then :meth:`fit`)."""
+        """The chosen policy with its streams, for the user's own collector (then :meth:`fit`)."""
         self.choose()
         return self.buyer.sampling_policy(self.iteration + 1, self.policy)
 
@@ -304,7 +304,7 @@ class ActivePolicyIteration:
     def improve(self) -> IterationRecord:
         """Step 4 of iteration l: pi_{l+1} of θ_l (ε-greedy or softmax), measured by
         ``evaluate``; the iteration's record is committed and returned."""
-        if getattr(self, "_fitted", None) is None:
+        if self._fitted is None:
             raise RuntimeError("improve() follows fit() (step 3) of the same iteration")
         (fitted, transitions, started), self._fitted = self._fitted, None
         l_now = self.iteration + 1

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
-from torch_api._checks import HUGE_LAMBDA
+from torch_api._checks import HUGE_LAMBDA, _count
+from torch_api._checks import _check_choice as _choice
 from torch_api.core.fit import FITS
 from torch_api.core.iwcv import DEFAULT_FLATTENING_GRID, DEFAULT_IWCV_FOLDS
 from torch_api.core.psi import PSI_MODES
@@ -42,16 +43,10 @@ def _check_memory(what: str, factors: tuple[int, ...]) -> None:
 
 
 def _integer(name: str, value, minimum: int = 1, maximum: int | None = None) -> int:
-    integral = isinstance(value, numbers.Integral) or (
-        isinstance(value, float) and value.is_integer()
-    )
-    if isinstance(value, bool) or not integral:
-        raise ValueError(f"{name} must be an integer, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+    value = _count(name, value, minimum)  # an integer (2.5, True, "3" refused) >= minimum
     if maximum is not None and value > maximum:
         raise ValueError(f"{name} must be <= {maximum}, got {value!r}")
-    return int(value)
+    return value
 
 
 def _real(name: str, value) -> float:
@@ -60,12 +55,6 @@ def _real(name: str, value) -> float:
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
     return float(value)
-
-
-def _choice(name: str, value, choices: tuple) -> str:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
-    return value
 
 
 def _reals(name: str, values) -> tuple[float, ...]:
