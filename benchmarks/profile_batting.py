@@ -1,24 +1,27 @@
-"""Where the time of an active batting run goes: physics, env Python, TorchRL/collection, algebra.
+"""The main job's time beside its physics-and-algebra floor, measured in one run.
 
-Runs ``ActivePolicyIteration`` (mode active, the 'decreasing' schedule, Z = 5, K = 4) on T
-batched batting trials and splits its wall time, with timers wrapped around:
+Runs what ``examples/train_batting.py`` runs by default, in this process on one core: the AL
+and the PL run of the 'decreasing' schedule (Z = 5, K = 4, the paper's basis), T batched
+trials, with pi_{l+1} scored on 20 test episodes per trial after each iteration (eq. 68).
+Timers are wrapped around the library's own functions:
 
-* physics: MuJoCo's native rollouts inside the env (``BattingSimulator._run``), counted in
-  coarse and fine physics steps by a :class:`PhysicsAudit` (a hook of the env);
-* env Python: the rest of ``BattingEnv._reset`` / ``_step`` (noise, gap prediction, look-ahead,
-  TensorDicts);
+* swing: the coarse, contact-free swing of every control step (``BattingSimulator._swing``);
+  its floor is the batched dynamics alone (``rk4_swing``, timed inside it);
+* impact window: MuJoCo's rollouts of the fine window and the coarse intervals around it
+  (``BattingSimulator._run``); its floor is bare ``mujoco.batch`` (``Batch.step``, one thread)
+  replaying a sample of the run's own window rollouts (``_physics_floor.py``), scaled to the
+  counted steps;
 * algebra: psi_hat, importance weights, J and the weighted solves (``build_design``,
-  ``j_criterion``, ``weighted_ridge``);
-* TorchRL / collection: the remainder (``env.rollout``, policies, buffers, checks).
+  ``j_values``, ``weighted_ridge``), its own floor here (``bench_batting_iteration.py`` splits
+  it against matrix-product floors);
+* env Python (noise, gap prediction, bookkeeping, TensorDicts) and TorchRL (rollouts,
+  policies, buffers): no floor.
 
-Next to it, in the same invocation, the physics floor of the run: bare MuJoCo replaying a 5 %
-sample of the run's own rollouts (same start states, torques and step counts;
-``benchmarks/_physics_floor.py``) with ``mujoco.batch.Batch`` on 2 threads, and with a 1-thread
-``mj_step`` loop, scaled to the counted steps. For comparison it also times the proxy floor used
-before (a free swing from the initial state for the same step counts), which leaves out the
-solver work of joint limits and contacts.
+The swing's MuJoCo cost is measured beside it: bare ``Batch.step`` replaying a sample of the
+run's own swing rollouts (the engine of record's coarse RK4 on the same states). With
+``--swing mujoco`` the run itself swings in MuJoCo.
 
-    python benchmarks/profile_batting.py --trials 8
+    python benchmarks/profile_batting.py --trials 32
 """
 
 from __future__ import annotations
@@ -31,23 +34,25 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
-from _physics_floor import PhysicsAudit, replay_batch, replay_loop
-from bench_batting_env import raw_batch_run
+from _physics_floor import PhysicsAudit, replay_batch
+from _timing import machine_info
 
-import torch_api.core.design
+import envs.batting.swing
 import torch_api.core.fit
-import torch_api.core.solve
 import torch_api.loop.selector
 from envs import batting
-from envs.batting import BASIS_TAU, BattingEnv, basis_centers
+from envs.batting import BASIS_TAU, MAX_STEPS, BattingEnv, PhysicsHook, basis_centers
+from torch_api import collect_episodes
 from torch_api.core.basis import GaussianActionBasis
+from torch_api.data import REWARD_KEY
 from torch_api.loop.iteration import ActivePolicyIteration
 from torch_api.loop.selector import SamplingPolicySelector
 from torch_api.loop.spec import RunSpec
 
 DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
+TESTS = 20  # test episodes per trial behind one score (eq. 68)
 TIMERS: dict[str, float] = defaultdict(float)
-_DEPTH = {"n": 0}  # algebra calls nest (j_values -> build_design): time the outermost only
+_DEPTH = {"algebra": 0, "swing": 0}  # nested calls are timed by the outermost only
 
 
 @contextmanager
@@ -59,41 +64,53 @@ def timed(name: str):
         TIMERS[name] += time.perf_counter() - start
 
 
-def wrap(owner, attr: str, name: str, *, outermost: bool = False) -> None:
+def wrap(owner, attr: str, name: str) -> None:
+    """Add the time of ``owner.attr``'s outermost calls to ``TIMERS[name]``."""
     original = getattr(owner, attr)
 
     def wrapper(*args, **kwargs):
-        if outermost and _DEPTH["n"]:
+        if _DEPTH.get(name):
             return original(*args, **kwargs)
-        _DEPTH["n"] += outermost
+        _DEPTH[name] = 1
         try:
             with timed(name):
                 return original(*args, **kwargs)
         finally:
-            _DEPTH["n"] -= outermost
+            _DEPTH[name] = 0
 
     setattr(owner, attr, wrapper)
 
 
-def time_physics() -> None:
-    """Time ``BattingSimulator._run``, the env's MuJoCo rollouts."""
-    original = batting.BattingSimulator._run
+class SplitAudit(PhysicsHook):
+    """Two :class:`PhysicsAudit`: the swing's rollouts and the impact window's."""
 
-    def run(self, batch, ids, torque, nstep, *args, **kwargs):
-        with timed("physics"):
-            return original(self, batch, ids, torque, nstep, *args, **kwargs)
+    def __init__(self, fraction: float) -> None:
+        self.swing, self.window = PhysicsAudit(fraction, seed=0), PhysicsAudit(fraction, seed=1)
 
-    batting.BattingSimulator._run = run
+    def on_rollout(self, kind, states, ids, torque, nstep) -> None:
+        audit = self.swing if _DEPTH["swing"] else self.window
+        audit.on_rollout(kind, states, ids, torque, nstep)
 
 
 def instrument() -> None:
-    time_physics()
+    """Timers on the swing, its bare dynamics, MuJoCo's rollouts, the env and the algebra."""
+    wrap(batting.BattingSimulator, "_swing", "swing")
+    wrap(envs.batting.swing, "rk4_swing", "swing dynamics")
+    original_run = batting.BattingSimulator._run
+
+    def run(self, *args, **kwargs):  # MuJoCo's rollouts outside the swing: the impact window
+        if _DEPTH["swing"]:
+            return original_run(self, *args, **kwargs)
+        with timed("impact window"):
+            return original_run(self, *args, **kwargs)
+
+    batting.BattingSimulator._run = run
     wrap(BattingEnv, "_step", "env")
     wrap(BattingEnv, "_reset", "env")
     for module in (torch_api.core.fit, torch_api.loop.selector):
         for attr in ("build_design", "weighted_ridge", "j_values", "j_criterion"):
             if hasattr(module, attr):
-                wrap(module, attr, "algebra", outermost=True)
+                wrap(module, attr, "algebra")
 
 
 def basis() -> GaussianActionBasis:
@@ -101,85 +118,99 @@ def basis() -> GaussianActionBasis:
 
 
 def run_arguments(doc: str, *, trials: int, audit: float, out: str) -> argparse.Namespace:
-    """The command line of a timed active batting run (this script's, bench_batting_iteration's)."""
+    """The command line of a timed batting run (this script's, bench_batting_iteration's)."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--trials", type=int, default=trials)
     parser.add_argument("--iterations", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--nthread", type=int, default=2, help="MuJoCo threads of the env")
+    parser.add_argument("--nthread", type=int, default=1, help="MuJoCo threads of the env")
     parser.add_argument("--audit", type=float, default=audit, help="rollouts sampled for replay")
+    parser.add_argument("--swing", choices=("tensor", "mujoco"), default="tensor")
     parser.add_argument("--out", default=out)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     return args
 
 
-def active_run(args: argparse.Namespace, make) -> ActivePolicyIteration:
-    """The active run timed: 'decreasing', Z = 5, K = 4, the paper's basis; envs from ``make``."""
+def active_run(args: argparse.Namespace, make, mode: str = "active", evaluate=None):
+    """A run of the main job: 'decreasing', Z = 5, K = 4, the paper's basis; envs from ``make``."""
+    active = dict(num_repeats=5, keep_reward_free=False) if mode == "active" else {}
     spec = RunSpec.of(
         schedule=DECREASING[: args.iterations],
-        num_steps=10,
+        num_steps=MAX_STEPS,
         gamma=1.0,
-        num_repeats=5,
         psi_mode="single",
         num_trials=args.trials,
-        keep_reward_free=False,
+        mode=mode,
+        **active,
     )
+    selector = SamplingPolicySelector(env=make) if mode == "active" else None
     return ActivePolicyIteration(
-        spec, env=make, selector=SamplingPolicySelector(env=make), basis=basis()
+        spec, env=make, selector=selector, basis=basis(), evaluate=evaluate
     )
 
 
 def main() -> dict:
-    args = run_arguments(__doc__, trials=8, audit=0.05, out="results/profile_batting.json")
-    envs: list[BattingEnv] = []
-    audit = PhysicsAudit(args.audit, seed=0)
+    args = run_arguments(__doc__, trials=32, audit=0.05, out="results/profile_batting.json")
+    audit = SplitAudit(args.audit)
 
-    def make(rows: int) -> BattingEnv:
-        envs.append(BattingEnv(batch_size=rows, nthread=args.nthread, hook=audit))
-        return envs[-1]
+    def make(rows: int, seed: int | None = None) -> BattingEnv:
+        return BattingEnv(
+            batch_size=rows, seed=seed, nthread=args.nthread, hook=audit, swing=args.swing
+        )
+
+    tests = make(args.trials * TESTS, seed=0)
+
+    def evaluate(policy, seed: int) -> dict:  # eq. 68: Σ carry over 20 test episodes
+        tests.set_seed(seed)
+        td = collect_episodes(tests, policy, num_episodes=TESTS, num_steps=MAX_STEPS, rewarded=True)
+        return {"performance": (td[REWARD_KEY] * td["mask"]).sum((-2, -1)).tolist()}
 
     instrument()
-    api = active_run(args, make)
     start = time.perf_counter()
-    api.run()
+    for mode in ("active", "passive"):
+        active_run(args, make, mode, evaluate).run()
     wall = time.perf_counter() - start
-    coarse, fine = audit.steps["coarse"], audit.steps["fine"]
-    env_python = TIMERS["env"] - TIMERS["physics"]
-    torchrl = wall - TIMERS["env"] - TIMERS["algebra"]
-    raw2 = sum(replay_batch(audit, nthread=2).values())
-    raw1 = sum(replay_loop(audit).values())
-    proxy2 = raw_batch_run(envs[0], coarse, fine, nthread=2)
-    rows = {
-        "physics (MuJoCo rollouts in the env)": TIMERS["physics"],
-        "env Python (noise, gap prediction, look-ahead, TensorDicts)": env_python,
-        "TorchRL rollouts, policies, buffers, checks": torchrl,
-        "algebra (psi_hat, weights, J, solves)": TIMERS["algebra"],
+    swing_mujoco = sum(replay_batch(audit.swing, nthread=args.nthread).values())
+    window_floor = sum(replay_batch(audit.window, nthread=args.nthread).values())
+    swing_floor = TIMERS["swing dynamics"] if args.swing == "tensor" else swing_mujoco
+    parts = {  # part: (seconds in the run, its floor)
+        "swing": (TIMERS["swing"], swing_floor),
+        "impact window (MuJoCo)": (TIMERS["impact window"], window_floor),
+        "algebra": (TIMERS["algebra"], TIMERS["algebra"]),
+        "env Python": (TIMERS["env"] - TIMERS["swing"] - TIMERS["impact window"], 0.0),
+        "TorchRL rollouts, policies, buffers": (wall - TIMERS["env"] - TIMERS["algebra"], 0.0),
     }
+    floor = sum(f for _, f in parts.values())
+    steps = {k: audit.swing.steps[k] + audit.window.steps[k] for k in ("coarse", "fine")}
     print(
-        f"\nActive run, {args.trials} trials, schedule {list(api.schedule)}: {wall:.1f} s wall; "
-        f"{coarse:,} coarse + {fine:,} fine physics steps\n"
+        f"\nThe main job ({args.trials} trials, AL and PL, 'decreasing', {args.swing} swing), "
+        f"one process, {args.threads} torch / {args.nthread} MuJoCo thread(s): {wall:.1f} s; "
+        f"{steps['coarse']:,} coarse + {steps['fine']:,} fine physics steps\n"
     )
-    print("| part | seconds | share |\n|---|---:|---:|")
-    for name, seconds in rows.items():
-        print(f"| {name} | {seconds:.2f} | {seconds / wall:.0%} |")
-    print(f"| **total** | {wall:.2f} | 100% |")
+    print("| part | in the run (s) | floor (s) | run / floor |\n|---|---:|---:|---:|")
+    for name, (seconds, part_floor) in parts.items():
+        ratio = f"{seconds / part_floor:.2f}" if part_floor else "-"
+        print(f"| {name} | {seconds:.2f} | {part_floor:.2f} | {ratio} |")
+    print(f"| **the main job** | {wall:.2f} | {floor:.2f} | {wall / floor:.2f} |")
+    swing_ratio = TIMERS["swing dynamics"] / swing_mujoco if args.swing == "tensor" else 1.0
     print(
-        f"\nBare MuJoCo replaying the run's physics steps ({args.audit:.0%} sample): {raw2:.2f} s "
-        f"(Batch, 2 threads), {raw1:.2f} s (mj_step loop, 1 thread). In-env physics / floor: "
-        f"{TIMERS['physics'] / raw2:.2f}×; wall / floor (2 threads): {wall / raw2:.2f}×. "
-        f"(Proxy floor of a free swing from the initial state: {proxy2:.2f} s.)"
+        f"\nThe swing's physics in MuJoCo (bare Batch.step replaying a {args.audit:.0%} sample "
+        f"of its rollouts): {swing_mujoco:.2f} s; in tensors: {swing_floor:.2f} s; "
+        f"tensor / MuJoCo {swing_ratio:.2f}. Main job / physics-and-algebra floor: "
+        f"{wall / floor:.2f}×."
     )
     payload = {
         "trials": args.trials,
+        "swing": args.swing,
         "wall_s": wall,
-        "parts_s": rows,
-        "coarse_steps": coarse,
-        "fine_steps": fine,
-        "raw_batch_2_threads_s": raw2,
-        "raw_loop_1_thread_s": raw1,
-        "proxy_free_swing_2_threads_s": proxy2,
-        "wall_over_floor": wall / raw2,
+        "parts_s": {name: {"run": s, "floor": f} for name, (s, f) in parts.items()},
+        "floor_s": floor,
+        "wall_over_floor": wall / floor,
+        "swing_in_mujoco_s": swing_mujoco,
+        "swing_tensor_over_mujoco": swing_ratio,
+        "physics_steps": steps,
+        "machine": machine_info(),
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(payload, indent=1))

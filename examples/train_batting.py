@@ -6,7 +6,7 @@ all trials as one batch; pi_{l+1} scores Σ carry over 20 noisy test episodes (e
 paper's learner: 54 Gaussian centres, τ = 3π/2, B = 110, γ = 1, λ = 1e-3, Z = 5, ε_l = 0.15 / l,
 θ_0 = 1, N = 10. Writes train_batting.csv, .json and fig10_performance.png into --out-dir.
 
-    python examples/train_batting.py  # 32 trials, about a minute on 2 cores
+    python examples/train_batting.py  # 32 trials in two worker processes (chunks of 16)
 """
 
 import functools
@@ -71,8 +71,11 @@ class Args:
     """fraction of physics rollouts kept for replay (benchmarks/bench_figure10.py)"""
     device: str = "cpu"
     """where the algebra runs (cpu, cuda or cuda:N); the physics is MuJoCo's, on the CPU"""
-    execution: Annotated[ex.Execution, OmitArgPrefixes] = ex.Execution("results/train_batting")
-    """where the runs go: the output folder, stored runs, chunks of trials and their backend"""
+    execution: Annotated[ex.Execution, OmitArgPrefixes] = ex.Execution(
+        "results/train_batting", backend="processes", chunks=2
+    )
+    """where the runs go: the output folder, stored runs, chunks of trials and their backend (by
+    default two chunks per run in worker processes, one per core: the numbers do not change)"""
 
 
 def make_spec(args: Args, schedule: list[int], seed: int) -> RunSpec:

@@ -16,7 +16,7 @@ BENCHMARKS = ROOT / "benchmarks"
     [
         (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
-        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "wall / floor (2 threads)"),
+        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "| **the main job** |"),
         (
             ["bench_batting_iteration.py", "--trials", "1", "--iterations", "1", "--audit", "1"],
             "| part / floor | |",

@@ -19,6 +19,7 @@ from torch_api.experiment import read_results  # noqa: E402
 from torch_api.runs.store import RunStore  # noqa: E402
 
 TINY = ["--trials", "2", "--iterations", "2", "--episodes", "1", "--repeats", "2", "--seed", "3"]
+TINY += ["--backend", "local", "--chunks", "1"]  # in this process (the default: two workers)
 STEPS = 10  # N of the batting task
 
 

@@ -49,7 +49,8 @@ class PhysicsHook:
 
     def on_step_start(self, sim, states: np.ndarray | None) -> None:
         """After the coarse pass of a control step: ``states`` [E, n_coarse + 1, nstate] are its
-        states at the interval boundaries (``None`` in the uniform scheme)."""
+        states at the interval boundaries (``None`` in the uniform scheme); with the tensor swing
+        a buffer the simulator overwrites in the next control step (copy what is kept)."""
 
     def on_interval(self, sim, ids: np.ndarray, j: int, out: dict, coarse: bool) -> None:
         """After simulations ``ids`` were re-integrated from coarse interval ``j`` on: ``out``

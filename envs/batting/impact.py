@@ -45,6 +45,8 @@ from .flight import flight_carry, flight_time
 
 __all__ = ["ImpactWindow"]
 
+_BOUND_SLACK = 1e-9  # (m) kept below the lower bound of the gap: rounding never prunes a point
+
 
 class ImpactWindow:
     """The fine impact window and the launch of :class:`~envs.batting.BattingSimulator`.
@@ -69,36 +71,30 @@ class ImpactWindow:
         near = np.zeros((len(states), self.n_coarse), dtype=bool)
         rows = np.flatnonzero(self.in_play & ~self.hit)  # balls resting on their pins
         if len(rows):
-            qpos, qvel = self._qpos(states[rows]), self._qvel(states[rows])
-            # [E', n, 4 knots, 2 angles] -> [E', n, points, 2] by the Hermite basis
-            knots = np.stack(
-                [
-                    qpos[:, :-1, :2],
-                    qvel[:, :-1, :2] * self.coarse_dt,
-                    qpos[:, 1:, :2],
-                    qvel[:, 1:, :2] * self.coarse_dt,
-                ],
-                axis=2,
-            )
-            arm = self._hermite @ knots
+            qpos = states[rows, :, self._qpos_adr : self._qpos_adr + 5]  # phi1, phi2, ball
+            qvel = states[rows, :, self._qvel_adr : self._qvel_adr + 2]  # [E', n + 1, *]
+            q0, q1, v0, v1 = qpos[:, :-1, :2], qpos[:, 1:, :2], qvel[:, :-1], qvel[:, 1:]
             ball = 0.5 * (qpos[:, :-1, 2:5] + qpos[:, 1:, 2:5])  # at rest, [E', n, 3]
             # Most intervals are far from the ball: a lower bound of the gap at every point,
             # the gap at the interval's start less the most any bat point can move in it,
-            # leaves only the rest to evaluate point by point (the same points, the same gaps).
-            start = arm[:, :, 0]  # [E', n, 2]
-            turn1 = np.abs(arm[..., 0] - start[..., None, 0]).max(-1)  # the shoulder's turn
-            turn_bat = np.abs(
-                (arm[..., 0] - arm[..., 1]) - (start[..., None, 0] - start[..., None, 1])
-            ).max(-1)  # the bat's turn in the world (phi1 - phi2)
-            reach = self._elbow_reach * turn1 + self._bat_reach * turn_bat
-            bound = self.bat_ball_gap(start[..., 0], start[..., 1], ball) - reach
-            check = bound < self.margin  # [E', n]
+            # leaves only the rest to evaluate point by point (the same points, the same
+            # gaps). The Hermite cubic lies in the convex hull of its Bezier control points
+            # (start, start + v0 dt / 3, end - v1 dt / 3, end), so no angle of the interval
+            # moves further from its start than one of them.
+            third = self.coarse_dt / 3.0
+            moves = (v0 * third, (q1 - q0) - v1 * third, q1 - q0)  # control points - start
+            turn1 = np.maximum.reduce([np.abs(m[..., 0]) for m in moves])  # the shoulder's
+            turn_bat = np.maximum.reduce([np.abs(m[..., 0] - m[..., 1]) for m in moves])
+            reach = self._elbow_reach * turn1 + self._bat_reach * turn_bat  # (phi1 - phi2)
+            bound = self.bat_ball_gap(q0[..., 0], q0[..., 1], ball) - reach
+            check = bound < self.margin + _BOUND_SLACK  # [E', n]
             if check.any():
-                points = arm[check]  # [C, points, 2]
-                gap = self.bat_ball_gap(points[..., 0], points[..., 1], ball[check][:, None])
-                near[rows[np.nonzero(check)[0]], np.nonzero(check)[1]] = (
-                    gap.min(axis=-1) < self.margin
-                )
+                e, k = np.nonzero(check)
+                dt = self.coarse_dt  # [C, 4 knots, 2 angles] -> [C, points, 2]
+                knots = np.stack([q0[e, k], v0[e, k] * dt, q1[e, k], v1[e, k] * dt], axis=1)
+                points = self._hermite @ knots
+                gap = self.bat_ball_gap(points[..., 0], points[..., 1], ball[e, k][:, None])
+                near[rows[e], k] = gap.min(axis=-1) < self.margin
         near[self.in_play & self.hit] = True  # a hit ball still touching the bat
         return near
 

@@ -124,16 +124,18 @@ def arm_acceleration(
     # solves (M + J^T D J) a = f + J^T D aref; the minimiser is the candidate of least cost.
     on1, on2 = _active_sets(q.device)  # [4, 1] each
     (d1, d2), (p1, p2), (f1, f2) = stiff.unbind(0), push.unbind(0), f.unbind(0)
-    a11, a22 = m11 + on1 * d1, m22 + on2 * d2
-    r1, r2 = f1 + on1 * p1, f2 + on2 * p2
-    inv_det = 1.0 / (a11 * a22 - m12 * m12)
-    acc1, acc2 = (a22 * r1 - m12 * r2) * inv_det, (a11 * r2 - m12 * r1) * inv_det
+    # (in place where a [4, E] temporary is updated: the same values, fewer passes over memory)
+    a11, a22 = torch.addcmul(m11, on1, d1), (on2 * d2).add_(m22)
+    r1, r2 = torch.addcmul(f1, on1, p1), torch.addcmul(f2, on2, p2)
+    inv_det = (a11 * a22).sub_(m12 * m12).reciprocal_()
+    acc1, acc2 = (a22 * r1).sub_(m12 * r2).mul_(inv_det), (a11 * r2).sub_(m12 * r1).mul_(inv_det)
     (sign1, sign2), (aref1, aref2) = sign.unbind(0), aref.unbind(0)
-    slack1 = (sign1 * acc1 - aref1).clamp_max(0.0)
-    slack2 = (sign2 * acc2 - aref2).clamp_max(0.0)
+    slack1 = (sign1 * acc1).sub_(aref1).clamp_max_(0.0)
+    slack2 = (sign2 * acc2).sub_(aref2).clamp_max_(0.0)
     # 1/2 a^T M a - f^T a (the Gauss term less a constant) plus the rows' cost
-    cost = (0.5 * (m11 * acc1 + 2.0 * m12 * acc2) - f1) * acc1 + (0.5 * m22 * acc2 - f2) * acc2
-    cost = cost + 0.5 * (d1 * slack1 * slack1 + d2 * slack2 * slack2)
+    cost = (m11 * acc1).add_(2.0 * m12 * acc2).mul_(0.5).sub_(f1).mul_(acc1)
+    cost += (0.5 * m22 * acc2).sub_(f2).mul_(acc2)
+    cost += 0.5 * (d1 * slack1 * slack1 + d2 * slack2 * slack2)
     return torch.stack(_least(cost, acc1, acc2))
 
 
@@ -201,6 +203,14 @@ def rk4_swing(
     return torch.stack(angles), torch.stack(speeds), torch.stack(last)
 
 
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """``index`` as a slice where it is a run of consecutive columns (a faster copy), else as is."""
+    index = np.asarray(index)
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
+
+
 def state_offsets(model: mujoco.MjModel) -> dict[int, int]:
     """Offset of each component (keyed by its ``mjtState`` bit) in an integration-state row.
 
@@ -251,11 +261,11 @@ class TensorSwing:
         self.nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_INTEGRATION.value)
         state = mujoco.mjtState
         self._time = offset[state.mjSTATE_TIME.value]
-        self._qpos = offset[state.mjSTATE_QPOS.value] + model.jnt_qposadr[:2]
+        self._qpos = _as_slice(offset[state.mjSTATE_QPOS.value] + model.jnt_qposadr[:2])
         dofs = model.jnt_dofadr[:2]
-        self._qvel = offset[state.mjSTATE_QVEL.value] + dofs
+        self._qvel = _as_slice(offset[state.mjSTATE_QVEL.value] + dofs)
         warm = offset[state.mjSTATE_WARMSTART.value]
-        self._warm_arm, self._warm = warm + dofs, slice(warm, warm + model.nv)
+        self._warm_arm, self._warm = _as_slice(warm + dofs), slice(warm, warm + model.nv)
         qpos, qvel = offset[state.mjSTATE_QPOS.value], offset[state.mjSTATE_QVEL.value]
         self._qpos_all, self._qvel_all = slice(qpos, qpos + model.nq), slice(qvel, qvel + model.nv)
         self._others = qvel + np.setdiff1d(np.arange(model.nv), dofs)  # the ball's dofs
@@ -264,7 +274,7 @@ class TensorSwing:
         )
 
     def rollout(
-        self, start: np.ndarray, ctrl: np.ndarray, nstep: int
+        self, start: np.ndarray, ctrl: np.ndarray, nstep: int, out: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """``nstep`` physics steps of every row at constant controls.
 
@@ -272,6 +282,8 @@ class TensorSwing:
             start: [E, nstate] integration-state rows at the start.
             ctrl: [E, U] controls (N m for the batting arm's motors), held throughout.
             nstep: number of physics steps.
+            out: where to write the rows, float64 [E, nstep + 1, nstate] (a buffer the caller
+                reuses from call to call), or None for a new array.
 
         Returns:
             rows [E, nstep + 1, nstate] (index 0: ``start``), and bad [E], True where a state or
@@ -281,6 +293,9 @@ class TensorSwing:
             raise ValueError(
                 f"start must be [E, {self.nstate}] and ctrl [E, U], got {start.shape}, {ctrl.shape}"
             )
+        shape = (len(start), nstep + 1, self.nstate)
+        if out is not None and (out.shape != shape or out.dtype != np.float64):
+            raise ValueError(f"out must be float64 {shape}, got {out.dtype} {out.shape}")
 
         def tensor(x: np.ndarray) -> torch.Tensor:  # joint-major rows on the device
             return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64).to(self.device)
@@ -288,8 +303,12 @@ class TensorSwing:
         q, v = tensor(start[:, self._qpos].T), tensor(start[:, self._qvel].T)  # [2, E]
         force = self.arm.actuation @ tensor(ctrl.T)
         swing = rk4_swing(self.arm, q, v, force, nstep)  # [n + 1, 2, E] ...
+        # bad: on the contiguous tensors, before they are spread over the rows
+        fine = [(x.abs() <= _BAD).all(0).all(0) for x in swing]  # (NaN compares False)
+        bad = ~(fine[0] & fine[1] & fine[2]).cpu().numpy()
         angles, speeds, accs = (x.permute(2, 0, 1).cpu().numpy() for x in swing)
-        rows = np.repeat(start[:, None], nstep + 1, axis=1)
+        rows = np.empty(shape) if out is None else out
+        rows[:] = start[:, None]
         rows[:, :, self._qpos] = angles
         rows[:, :, self._qvel] = speeds
         rows[:, 1:, self._warm] = 0.0  # the other degrees of freedom do not accelerate
@@ -300,8 +319,6 @@ class TensorSwing:
         for k in range(1, nstep + 1):  # MuJoCo adds one step at a time
             time = time + self.timestep
             rows[:, k, self._time] = time
-        values = np.concatenate([angles, speeds], axis=-1).reshape(len(start), -1)
-        bad = ~(np.abs(values) <= _BAD).all(-1) | ~(np.abs(accs) <= _BAD).all((-2, -1))
         return rows, bad
 
     def _drift(self, rows: np.ndarray) -> None:
@@ -318,7 +335,7 @@ class TensorSwing:
             weighted = weighted + speed * (1.0 / 6.0)
             qpos = rows[r, 0, self._qpos_all].copy()
             for k in range(1, rows.shape[1]):
-                arm = rows[r, k, self._qpos]
+                arm = rows[r, k, self._qpos].copy()
                 mujoco.mj_integratePos(self.model, qpos, weighted, self.timestep)
                 rows[r, k, self._qpos_all] = qpos
                 rows[r, k, self._qpos] = arm
