@@ -12,7 +12,8 @@ Timers are wrapped around the library's own functions:
   replaying a sample of the run's own window rollouts (``_physics_floor.py``), scaled to the
   counted steps;
 * algebra: psi_hat, importance weights, J and the weighted solves (``build_design``,
-  ``j_values``, ``weighted_ridge``), its own floor here (``bench_batting_iteration.py`` splits
+  ``j_values``, ``weighted_ridge``) and the policies' Q-values in the rollouts
+  (``GaussianActionBasis.kernels``), its own floor here (``bench_batting_iteration.py`` splits
   it against matrix-product floors);
 * env Python (noise, gap prediction, bookkeeping, TensorDicts) and TorchRL (rollouts,
   policies, buffers): no floor.
@@ -111,6 +112,7 @@ def instrument() -> None:
         for attr in ("build_design", "weighted_ridge", "j_values", "j_criterion"):
             if hasattr(module, attr):
                 wrap(module, attr, "algebra")
+    wrap(GaussianActionBasis, "kernels", "algebra")  # (also the policies' Q-values in rollouts)
 
 
 def basis() -> GaussianActionBasis:

@@ -149,23 +149,20 @@ class ImpactWindow:
                 self.hook.on_interval(self, ids[fine], j, out, coarse=False)
             bat = self._sensor(out["sensordata"], "bat_ball_contact") > 0  # [F, n_sub]
             pin = self._sensor(out["sensordata"], "pin_ball_contact") > 0
-            for f, i in enumerate(fine):
-                env = ids[i]
-                k0 = 0
-                if not (self.hit[env] or first_hit[env] or pending[i]) and bat[f].any():
-                    first_hit[env] = pending[i] = True
-                    k0 = int(np.argmax(bat[f]))
-                if not pending[i]:
-                    continue
-                free = np.flatnonzero(~bat[f, k0:] & ~pin[f, k0:])
-                if len(free) == 0:
-                    continue
-                k = k0 + int(free[0])  # state k: the chunk's start or after physics step k - 1
-                state = chunk_start[f] if k == 0 else None
-                pos = self._qpos(state)[2:5] if k == 0 else out["qpos"][f, k - 1, 2:5]
-                vel = self._qvel(state)[2:5] if k == 0 else out["qvel"][f, k - 1, 2:5]
-                carry[env] = self._record_launch(env, pos, vel)
-                pending[i] = False
+            env = ids[fine]
+            # the episode's first contact: its launch is searched from that physics step on
+            first = bat.any(axis=1) & ~(self.hit[env] | first_hit[env] | pending[fine])
+            first_hit[env[first]] = pending[fine[first]] = True
+            since = np.where(first, bat.argmax(axis=1), 0)
+            free = ~bat & ~pin & (np.arange(bat.shape[1]) >= since[:, None])
+            f = np.flatnonzero(pending[fine] & free.any(axis=1))  # the launches in this interval
+            if len(f):
+                k = free[f].argmax(axis=1)[:, None]  # state k: the start, or after step k - 1
+                at_start = self._qpos(chunk_start[f])[:, 2:5], self._qvel(chunk_start[f])[:, 2:5]
+                after = out["qpos"][f, k[:, 0] - 1, 2:5], out["qvel"][f, k[:, 0] - 1, 2:5]
+                pos, vel = (np.where(k == 0, a, b) for a, b in zip(at_start, after, strict=True))
+                carry[env[f]] = self._record_launch(env[f], pos, vel)
+                pending[fine[f]] = False
             touching[fine] = bat[:, -1]
             launched = self.hit[ids[fine]] | first_hit[ids[fine]]
             park = launched & ~pending[fine] & ~touching[fine] & self.in_play[ids[fine]]
@@ -196,9 +193,11 @@ class ImpactWindow:
 
     # -- the launch and the flight ------------------------------------------------------------
 
-    def _record_launch(self, env: int, pos: np.ndarray, vel: np.ndarray) -> float:
-        self.launch[env] = np.concatenate([pos, vel])
-        return float(flight_carry(pos, vel, self.pin_xy, self.ball_radius, self.gravity))
+    def _record_launch(self, env, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        """Record the launch of simulations ``env`` (an index or [L]) from ``pos``, ``vel``
+        ([3] or [L, 3]); returns their carries."""
+        self.launch[env] = np.concatenate([pos, vel], axis=-1)
+        return flight_carry(pos, vel, self.pin_xy, self.ball_radius, self.gravity)
 
     def _look_ahead(self, ids: np.ndarray, torque: np.ndarray) -> np.ndarray:
         """Carry of balls still touching the bat or pin at the end of the first-contact step.
