@@ -32,7 +32,7 @@ from torch_api.streams import STREAMS
 SCHEDULES = {"decreasing": (10, 10, 7, 7, 7, 4, 4), "fixed": (7,) * 7}  # M_l, l = 1 … 7
 TESTS = 20  # test episodes per trial behind one score (eq. 68)
 REFERENCE = Path("results/batting_reference.json")  # examples/batting_reference.py writes it
-PAPER_SIZE = "--trials 500 --schedule both --backend processes --chunks 32 --out-dir results/paper"
+PAPER_SIZE = "--trials 500 --schedule both --backend processes --chunks 8 --out-dir results/paper"
 PAPER_RUN = Path("results/paper/train_batting.json")  # what PAPER_SIZE writes, if it was run
 SAME = ("trials", "schedule", "execution", "device")  # the paper-size run quoted: this setting
 
