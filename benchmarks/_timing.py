@@ -1,4 +1,4 @@
-"""A small median timer shared by the benchmark scripts.
+"""A small median timer shared by the benchmark scripts, the machine they ran on, their JSON.
 
 Example:
     >>> t = median_time(lambda: sum(range(1000)), budget_s=0.01)
@@ -11,17 +11,19 @@ Example:
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["Timing", "machine_info", "median_time", "median_times"]
+__all__ = ["Timing", "machine_info", "median_time", "median_times", "write_result"]
 
 
 @dataclass(frozen=True)
@@ -115,3 +117,12 @@ def machine_info() -> dict[str, str | int | float]:
         "python": platform.python_version(),
         "load_avg_1min": os.getloadavg()[0],  # other processes competing for the cores
     }
+
+
+def write_result(path: str | Path, payload: dict) -> dict:
+    """Write a benchmark's ``payload`` as JSON to ``path`` (its folder made), say so, return it."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(payload, indent=2))
+    print(f"wrote {out}")
+    return payload

@@ -19,12 +19,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import itertools
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from _timing import write_result
 
 from envs.batting import ACTION_TORQUES, FINE_DT, MAX_STEPS, XML_PATH, BattingSimulator
 
@@ -176,11 +176,7 @@ def main(args: Args) -> dict:
         "rows": rows,
         "tensor_vs_mujoco_swing": swings,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    print(f"wrote {out}")
-    return result
+    return write_result(args.out, result)
 
 
 def parse_args(argv: list[str] | None = None) -> Args:

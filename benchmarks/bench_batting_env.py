@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
+from _timing import write_result
 from mujoco.batch import Batch
 
 from envs.batting import MAX_STEPS, XML_PATH, BattingEnv
@@ -188,11 +187,7 @@ def main(args: Args) -> dict:
         "vs base: median over repeats of baseline env time / current env time"
     )
     result = {"args": asdict(args), "rows": rows}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    print(f"wrote {out}")
-    return result
+    return write_result(args.out, result)
 
 
 def parse_args(argv: list[str] | None = None) -> Args:

@@ -17,16 +17,14 @@ the machine (CPU, cores, load, torch threads) goes into the JSON file.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 from _physics_floor import PhysicsAudit, replay_batch
-from _timing import machine_info
+from _timing import machine_info, write_result
 
 from envs.batting import ACTION_TORQUES, MAX_STEPS, NOISE_VARIANCE, BattingSimulator, PhysicsHook
 
@@ -150,11 +148,7 @@ def main(args: Args) -> dict:
         "run's coarse and fine steps (medians over repeats of per-repeat ratios)"
     )
     result = {"args": asdict(args), "machine": info, "rows": rows}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    print(f"wrote {out}")
-    return result
+    return write_result(args.out, result)
 
 
 def parse_args(argv: list[str] | None = None) -> Args:

@@ -28,15 +28,13 @@ run's own swing rollouts (the engine of record's coarse RK4 on the same states).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from collections import defaultdict
 from contextlib import contextmanager
-from pathlib import Path
 
 import torch
 from _physics_floor import PhysicsAudit, replay_batch
-from _timing import machine_info
+from _timing import machine_info, write_result
 
 import envs.batting.swing
 import torch_api.core.fit
@@ -214,9 +212,7 @@ def main() -> dict:
         "physics_steps": steps,
         "machine": machine_info(),
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(payload, indent=1))
-    return payload
+    return write_result(args.out, payload)
 
 
 if __name__ == "__main__":
