@@ -154,6 +154,7 @@ class BattingSimulator(ImpactWindow):
         self.tensor_swing, self._swing_rows = None, None
         if swing == "tensor" and scheme == "adaptive":
             self.tensor_swing = TensorSwing(self.coarse_model, device=device)
+            self._swing_rows = np.empty((num_envs, self.n_coarse + 1, self.tensor_swing.nstate))
         self.fine_model = mujoco.MjModel.from_xml_path(str(xml_path))
         self.fine_model.opt.timestep = self.fine_dt
         model = self.fine_model
@@ -362,12 +363,8 @@ class BattingSimulator(ImpactWindow):
             return np.concatenate([start[:, None], out[_INTEGRATION_STATE.value]], axis=1)
         if self.hook is not None:
             self.hook.on_rollout("coarse", self.main.state, everyone, torque, self.n_coarse)
-        shape = (self.num_envs, self.n_coarse + 1, self.tensor_swing.nstate)
-        if self._swing_rows is None or self._swing_rows.shape != shape:
-            self._swing_rows = np.empty(shape)  # reused step after step (its pages stay mapped)
-        states, bad = self.tensor_swing.rollout(
-            self.main.state, torque, self.n_coarse, out=self._swing_rows
-        )
+        rows = self._swing_rows  # (reused step after step: its pages stay mapped)
+        states, bad = self.tensor_swing.rollout(self.main.state, torque, self.n_coarse, out=rows)
         if bad.any():
             raise RuntimeError(
                 f"the tensor swing diverged like an unstable MuJoCo simulation (NaN or huge "
