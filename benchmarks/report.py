@@ -94,7 +94,7 @@ def headline_table(pairs: list[tuple[dict, dict]], link: str = "") -> list[str]:
         beside = "".join(  # a learner of the field at the same budget, where one was run
             f"; {b['learner']}: {mean_se(b['return'], d)}"
             for b in e.get("baselines", [])
-            if not b["learner"].startswith("library")
+            if not b["learner"].startswith("library") and b["task"] == r.get("task", b["task"])
         )
         lines.append(
             f"| {task} | {r['schedule']}, `{r['measure']}`{beside} | {mean_se(r['al'], d)} | "

@@ -8,20 +8,24 @@ paper's), and optionally one lever beyond the paper (``flattening="iwcv"``):
 - the chain walk (``envs.chain_walk``, paper section 4.2): the exact expected return of
   pi_{L+1} (``exact_return``), L = 7, N = 10;
 - the ball-batting arm (``envs.batting``, paper section 5): Σ carry over 20 test episodes
-  (``performance``), L = 7, N = 10.
+  (``performance``), L = 7, N = 10;
+- CartPole-v1 and Acrobot-v1 (beyond the paper, ``benchmarks/_budget_map_gym.py``): the greedy
+  test return of θ_L (``greedy_test_return``), the CartPole showcase's settings (a quadratic
+  Q̂ per action, LSTD-Q, γ = 0.95, ν = 0: their cells' ν = 0 is the task's own, not a lever).
 
-Trials are sized from a pilot: a cell first runs ``--pilot`` trials; with σ_d the spread of
-the paired differences there, it is rerun with n = ⌈((z_0.975 + z_0.8) σ_d / δ)²⌉ trials
-(between the pilot's and the task's cap), so that a difference δ would be found with 80 %
-power by the paired two-tailed t-test at α = 0.05. δ is ``--effect`` times the gap between
-PL and the optimum (the chain walk: its exact optimum) or times PL's score (the batting arm: no
-optimum is known). Trial t's seed depends on (the run's seed, t) only, so the n trials hold the
+Trials are sized from a pilot: a cell first runs ``--pilot`` trials (``--gym-pilot`` on
+CartPole and Acrobot); with σ_d the spread of the paired differences there, it is rerun with
+n = ⌈((z_0.975 + z_0.8) σ_d / δ)²⌉ trials (between the pilot's and the task's cap), so that a
+difference δ would be found with 80 % power by the paired two-tailed t-test at α = 0.05. δ is
+``--effect`` times the gap between PL and the optimum (the chain walk: its exact optimum;
+CartPole, Acrobot: a solved policy's return) or times PL's score (the batting arm: no optimum
+is known). Trial t's seed depends on (the run's seed, t) only, so the n trials hold the
 pilot's. Every cell records its trials, AL − PL with its 95 % interval and p, the difference
 detectable with 80 % power at its n, and the cost: each method's seconds and reward-free
 transitions. Cells are stored as they finish in ``--out-dir`` (a rerun skips them), then the
 data file and the figure are written::
 
-    python benchmarks/reward_budget_map.py --tasks both \\
+    python benchmarks/reward_budget_map.py --tasks all \\
         --out docs/results/data/reward_budget_map.json --figure docs/results/reward_budget_map.png
 """
 
@@ -44,8 +48,9 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / d) for d in ("examples
 import chain_walk_api as chain  # noqa: E402  (the chain walk's env, basis and evaluation)
 import train_batting as batting  # noqa: E402  (the batting arm's basis and evaluation)
 
-from benchmarks._budget_map_figure import MEASURE, plot, row_of, telling  # noqa: E402
-from benchmarks.summarize import commit_of, machine, paired_difference, verdict  # noqa: E402
+from benchmarks import _budget_map_gym as gym_tasks  # noqa: E402
+from benchmarks._budget_map_figure import MEASURE, data_file, plot  # noqa: E402
+from benchmarks.summarize import paired_difference, verdict  # noqa: E402
 from envs.batting import MAX_STEPS, BattingEnv  # noqa: E402
 from envs.chain_walk import CENTERS, TAU  # noqa: E402
 from envs.chain_walk.model import GAMMA  # noqa: E402
@@ -54,6 +59,9 @@ from torch_api import experiment as ex  # noqa: E402
 from torch_api.runs.files import write_text_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+TASKS = {"both": ["chain", "batting"], "gym": ["cartpole", "acrobot"]}
+TASKS["all"] = TASKS["both"] + TASKS["gym"]
+OWN_NU = {"cartpole": gym_tasks.NU, "acrobot": gym_tasks.NU}  # a task's own ν (else 1: the paper's)
 Z_POWER = float(scipy.stats.norm.ppf(0.975) + scipy.stats.norm.ppf(0.8))  # α = 0.05, 80 % power
 
 
@@ -76,13 +84,13 @@ class Cell:
     @property
     def name(self) -> str:
         r = "M" if self.reward_free is None else str(self.reward_free)
-        nu = "" if self.flattening == 1.0 else f"_nu{self.flattening}"
+        nu = "" if self.flattening == OWN_NU.get(self.task, 1.0) else f"_nu{self.flattening}"
         return f"{self.task}_M{self.episodes}_R{r}_Z{self.repeats}{nu}_L{self.iterations}"
 
     @property
     def axis(self) -> str:
         """What the cell varies: the rewarded budget, the reward-free one, or a lever."""
-        if self.flattening != 1.0:
+        if self.flattening != OWN_NU.get(self.task, 1.0):
             return "lever"
         return "rewarded" if self.reward_free is None and self.repeats == 5 else "reward_free"
 
@@ -100,8 +108,8 @@ class RunArgs:
 class Args:
     """The reward-budget map: AL − PL against M and the reward-free budget, per task."""
 
-    tasks: Literal["chain", "batting", "both"] = "both"
-    """which tasks' cells to run"""
+    tasks: Literal["chain", "batting", "cartpole", "acrobot", "both", "gym", "all"] = "both"
+    """which tasks' cells to run (both: chain and batting; gym: CartPole and Acrobot)"""
     chain_episodes: tuple[int, ...] = (1, 2, 5, 10)
     """M of the chain walk's rewarded-budget cells"""
     batting_episodes: tuple[int, ...] = (1, 5)
@@ -112,6 +120,14 @@ class Args:
     """the chain walk's reward-budget cells (M, R, Z); R = M, Z = 5 is a rewarded-budget cell"""
     batting_reward_free: tuple[tuple[int, int, int], ...] = ((5, 1, 5),)
     """the batting arm's reward-budget cells (M, R, Z)"""
+    cartpole_episodes: tuple[int, ...] = (1, 4)
+    """M of CartPole's rewarded-budget cells"""
+    acrobot_episodes: tuple[int, ...] = (2,)
+    """M of Acrobot's rewarded-budget cells"""
+    cartpole_reward_free: tuple[tuple[int, int, int], ...] = ((4, 1, 1),)
+    """CartPole's reward-budget cells (M, R, Z)"""
+    acrobot_reward_free: tuple[tuple[int, int, int], ...] = ()
+    """Acrobot's reward-budget cells (M, R, Z)"""
     levers: tuple[tuple[str, int], ...] = (("chain", 1), ("batting", 1))
     """(task, M) cells run with flattening="iwcv" (beyond the paper)"""
     iterations: int = 7
@@ -122,6 +138,12 @@ class Args:
     """most trials of a chain-walk cell"""
     batting_cap: int = 200
     """most trials of a batting cell"""
+    gym_pilot: int = 20
+    """trials of a CartPole or Acrobot cell's pilot (at most its cap; --pilot: the others')"""
+    cartpole_cap: int = 60
+    """most trials of a CartPole cell"""
+    acrobot_cap: int = 20
+    """most trials of an Acrobot cell"""
     effect: float = 0.25
     """δ: this share of the PL-vs-optimum gap (chain walk) or of PL's score (batting)"""
     seed: int = 0
@@ -136,15 +158,13 @@ class Args:
 
 def cells(args: Args) -> list[Cell]:
     """Every cell asked for, the rewarded-budget ones first, without repeats."""
-    tasks = ["chain", "batting"] if args.tasks == "both" else [args.tasks]
     L, made = args.iterations, []
-    for task in tasks:
-        episodes = args.chain_episodes if task == "chain" else args.batting_episodes
-        made += [Cell(task, m, iterations=L) for m in episodes]
-        budgets = args.chain_reward_free if task == "chain" else args.batting_reward_free
-        for m, r, z in budgets:
-            cell = Cell(task, m, reward_free=r, repeats=z, iterations=L)
-            made.append(Cell(task, m, iterations=L) if r == m and z == 5 else cell)
+    for task in TASKS.get(args.tasks, [args.tasks]):
+        nu = OWN_NU.get(task, 1.0)
+        made += [Cell(task, m, flattening=nu, iterations=L) for m in vars(args)[f"{task}_episodes"]]
+        for m, r, z in vars(args)[f"{task}_reward_free"]:
+            cell = Cell(task, m, reward_free=r, repeats=z, flattening=nu, iterations=L)
+            made.append(Cell(task, m, flattening=nu, iterations=L) if r == m and z == 5 else cell)
         made += [Cell(t, m, flattening="iwcv", iterations=L) for t, m in args.levers if t == task]
     return list(dict.fromkeys(made))
 
@@ -165,12 +185,16 @@ def spec_of(cell: Cell, trials: int, seed: int) -> RunSpec:
     )
     if cell.task == "chain":
         return RunSpec.of(num_steps=10, gamma=GAMMA, psi_mode="grouped", **common)
+    if cell.task in gym_tasks.TASKS:
+        return gym_tasks.spec_of(cell.task, common)
     return RunSpec.of(num_steps=MAX_STEPS, gamma=1.0, psi_mode="single", **common)
 
 
 def run_chunk(chunk: ex.Chunk) -> dict:
     """One chunk's run of the cell's AL or PL (``chunk.args``: a :class:`RunArgs`)."""
     cell, seed, trials = chunk.args.cell, chunk.seed, len(chunk.trials)
+    if cell.task in gym_tasks.TASKS:
+        return gym_tasks.run_chunk_gym(chunk, spec_of(cell, trials, seed), ex)
     spec = spec_of(cell, trials, seed)
     if cell.task == "chain":
         basis = GaussianActionBasis(
@@ -252,9 +276,12 @@ def stats(values) -> dict:
 
 
 def target_effect(cell: Cell, pilot: dict, effect: float) -> float:
-    """δ: ``effect`` × (optimum − PL) on the chain walk, ``effect`` × PL's score on the arm."""
+    """δ: ``effect`` × (optimum − PL) on the chain walk, × (a solved policy's return − PL) on
+    CartPole and Acrobot, ``effect`` × PL's score on the arm."""
     if cell.task == "chain":
         return effect * max(chain.optimal_return(50) - pilot["pl"]["mean"], 0.0)
+    if cell.task in gym_tasks.TASKS:
+        return effect * max(gym_tasks.TASKS[cell.task].solved - pilot["pl"]["mean"], 0.0)
     return effect * abs(pilot["pl"]["mean"])
 
 
@@ -270,13 +297,14 @@ def sized_cell(cell: Cell, args: Args, out: Path) -> dict:
     path = out / "cells" / f"{cell.name}.json"
     if path.is_file():
         return json.loads(path.read_text())
-    started = time.perf_counter()
-    pilot = run_cell(cell, args.pilot, args.seed, out)
+    started, gym = time.perf_counter(), cell.task in gym_tasks.TASKS
+    cap = vars(args)[f"{cell.task}_cap"]
+    first = min(args.gym_pilot, cap) if gym else args.pilot
+    pilot = run_cell(cell, first, args.seed, out)
     delta = target_effect(cell, pilot, args.effect)
     needed = trials_needed(pilot["sd_difference"], delta)
-    cap = args.chain_cap if cell.task == "chain" else args.batting_cap
-    trials = min(max(needed, args.pilot), cap)
-    final = pilot if trials == args.pilot else run_cell(cell, trials, args.seed, out)
+    trials = min(max(needed, first), cap)
+    final = pilot if trials == first else run_cell(cell, trials, args.seed, out)
     final |= {
         "pilot": {k: pilot[k] for k in ("al", "pl", "difference", "sd_difference", "seconds")},
         "target_difference": delta,
@@ -295,53 +323,6 @@ def sized_cell(cell: Cell, args: Args, out: Path) -> dict:
     return final
 
 
-# -- the data file and the figure ------------------------------------------------------------
-
-
-def data_file(args: Args, found: list[dict], wall: float, load_start) -> dict:
-    """The map in the format of docs/results/data/ (rows for the headline, every cell)."""
-    command = "python benchmarks/reward_budget_map.py --tasks both"
-    command += " --out docs/results/data/reward_budget_map.json"
-    command += " --figure docs/results/reward_budget_map.png"
-    return {
-        "experiment": "reward_budget_map",
-        "title": "Where AL pays: AL − PL against the rewarded and reward-free budgets",
-        "task": "chain walk and batting arm, budget map",
-        "command": command,
-        "commit": commit_of(ROOT),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": machine(load_start, __import__("os").getloadavg(), "before and after"),
-        "note": "Each cell runs AL and PL on the same trial seeds with M rewarded episodes in "
-        "each of L = 7 iterations, R reward-free episodes per candidate and repeat (M: the "
-        "paper's) and Z repeats of J; the chain walk's measure is the exact expected return of "
-        "pi_{L+1}, the batting arm's the score of eq. 68. Trials: a 100-trial pilot, then as "
-        "many as 80 % power at α = 0.05 needs against the target δ (a quarter of the PL-to-"
-        "optimum gap on the chain walk, a quarter of PL's score on the batting arm), capped; "
-        "the headline rows are each task's smallest and largest M, the table below holds "
-        "every cell.",
-        "wall_seconds": wall,
-        "wall_note": "the sum of the cells' wall seconds (pilot and sized run), each measured "
-        "while other jobs shared the 2 cores",
-        "measures": ["exact_return", "performance"],
-        "headline_measures": ["exact_return", "performance"],
-        "chain_optimum": chain.optimal_return(50),
-        "better": "higher",
-        "digits": 3,
-        "args": asdict(args),
-        "power": {
-            "alpha": 0.05,
-            "power": 0.8,
-            "z_sum": Z_POWER,
-            "rule": "n = ceil(((z_0.975 + z_0.8) sd_d / delta)^2) from the pilot, "
-            "between the pilot's trials and the task's cap",
-            "delta": f"{args.effect} x (optimum - PL) on the chain walk, {args.effect} x PL on "
-            "the batting arm",
-        },
-        "rows": [row_of(c) for c in telling(found)],
-        "cells": found,
-    }
-
-
 def main(argv: list[str] | None = None) -> dict:
     args = tyro.cli(Args, args=argv, description=__doc__)
     out = Path(args.out_dir)
@@ -357,7 +338,7 @@ def main(argv: list[str] | None = None) -> dict:
     load_start = __import__("os").getloadavg()
     found = [sized_cell(replace(cell), args, out) for cell in todo]
     wall = sum(c["cell_wall_seconds"] for c in found)  # (the cells' own: a rerun reads them)
-    payload = data_file(args, found, wall, load_start)
+    payload = data_file(args, found, wall, load_start, chain.optimal_return(50), Z_POWER)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(Path(args.out), json.dumps(payload, indent=1))

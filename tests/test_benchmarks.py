@@ -1,5 +1,6 @@
 """The benchmark scripts run (tiny sizes) and print their tables."""
 
+import json
 import runpy
 import sys
 from pathlib import Path
@@ -20,6 +21,10 @@ BENCHMARKS = ROOT / "benchmarks"
         (
             ["bench_batting_iteration.py", "--trials", "1", "--iterations", "1", "--audit", "1"],
             "| part / floor | |",
+        ),
+        (
+            ["bench_batting_swing.py", "--sizes", "16", "--repeats", "1", "--audit-fraction", "1"],
+            "tensor / mujoco",
         ),
         (
             ["bench_figure10.py", "--trials", "2", "--iterations", "1", "--audit", "0.2"]
@@ -88,3 +93,47 @@ def test_aggregating_identical_rows_changes_nothing():
     theta_full = weighted_ridge(x, w, r, LAM)
     theta_agg = weighted_ridge(agg.x, agg.w, agg.r, LAM, num_samples=agg.num_samples)
     torch.testing.assert_close(theta_agg, theta_full, rtol=1e-9, atol=1e-12)
+
+
+def test_dqn_baseline_holds_both_tasks_beside_the_library(tmp_path, monkeypatch, capsys):
+    """benchmarks/dqn_baseline.py on CartPole and Acrobot (tiny, in this process): one DQN run a
+    seed and task, stored and read back; the library's JSONs merged per env into a paired row
+    and three baselines per task; the headline puts each task's DQN beside its own row only."""
+    library = []
+    for env, returns in (("CartPole-v1", (20.0, 30.0, 25.0)), ("Acrobot-v1", (-400, -300, -500))):
+        runs = {
+            mode: {
+                str(s): {"history": [{"greedy_test_return": r + 3 * s, "rewarded_transitions": 9}]}
+                for s, r in enumerate(returns)
+            }
+            for mode, returns in (("AL", returns), ("PL", tuple(r - 1 for r in returns)))
+        }
+        settings = {"env": env, "iterations": 2, "first_episodes": 3, "episodes": 1}
+        library.append(tmp_path / f"{env}.json")
+        library[-1].write_text(json.dumps({"args": settings, "runs": runs}))
+    out = tmp_path / "dqn_baseline.json"
+    flags = ["--seeds", "2", "--envs", "CartPole-v1", "Acrobot-v1", "--frames", "1000", "1000"]
+    flags += ["--test-episodes", "1", "--test-steps", "5", "--out-dir", str(tmp_path / "dqn")]
+    flags += ["--library", *map(str, library), "--out", str(out)]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [str(BENCHMARKS / "dqn_baseline.py"), *flags])
+    monkeypatch.setattr(sys, "path", [str(BENCHMARKS), str(ROOT), *sys.path])
+    for _ in range(2):  # the second run reads every seed back
+        runpy.run_path(str(BENCHMARKS / "dqn_baseline.py"), run_name="__main__")
+    assert capsys.readouterr().out.count("DQN Acrobot-v1 seed") == 2  # (the first run's only)
+    e = json.loads(out.read_text())
+    assert [r["task"] for r in e["rows"]] == ["CartPole-v1", "Acrobot-v1"]
+    assert e["rows"][1]["schedule"] == "Acrobot-v1: showcase (3, 1 × 1)"
+    assert e["rows"][1]["difference"]["mean"] == pytest.approx(1.0)  # seeds 0, 1 paired
+    assert [(b["task"], b["learner"].split(" (")[0]) for b in e["baselines"]] == [
+        (task, learner)
+        for task in ("CartPole-v1", "Acrobot-v1")
+        for learner in ("DQN", "library AL", "library PL")
+    ]
+    assert {r["test_iteration"] for r in e["dqn_runs"]} == {8, 6}  # the showcase's L per env
+    assert e["dqn_config"]["Acrobot-v1"]["init_random_frames"] == round(1000 / 500_100 * 10_000)
+    import report  # (benchmarks/ is first on the patched sys.path)
+
+    table = "\n".join(report.headline_table(report.headline([e])))
+    cartpole = next(line for line in table.splitlines() if "CartPole-v1: showcase" in line)
+    assert "DQN (TorchRL's example, 1,000 frames)" in cartpole and cartpole.count("DQN (") == 1

@@ -1,6 +1,7 @@
 """The TorchRL examples end to end with tiny budgets: ``gym_drop_in.py``, ``torchrl_pipeline.py``
 and ``merge_pipeline_runs.py``, their ``main(argv)`` run in this process (one kill-and-resume in
-a subprocess), and the library machinery they share (:mod:`torch_api.experiment.pipeline`)."""
+a subprocess); ``torchrl_pipeline.py``'s runs, through the user's ``Collector``, against
+``ActivePolicyIteration``'s own rollouts."""
 
 from __future__ import annotations
 
@@ -8,10 +9,13 @@ import json
 import math
 import signal
 import sys
+from functools import cache, partial
 from pathlib import Path
 
 import pytest
 import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
@@ -21,6 +25,7 @@ import torchrl_pipeline  # noqa: E402
 from _processes import start_example, wait_for_episodes  # noqa: E402
 
 import torch_api.experiment.pipeline as pipe  # noqa: E402
+from torch_api import ActivePolicyIteration, DurableRun, SamplingPolicySelector  # noqa: E402
 from torch_api.core.quadratic_basis import QuadraticActionBasis  # noqa: E402
 from torch_api.experiment import read_results  # noqa: E402
 from torch_api.runs.store import RunStore  # noqa: E402
@@ -172,10 +177,14 @@ def test_torchrl_pipeline_runs_cartpole_by_default_al_and_pl_paired(pipeline_two
         for run in payload["runs"][mode].values():
             history = run["history"]
             assert [h["iteration"] for h in history] == [1, 2]
-            assert all(h["flattening"] == 0.0 and h["ess_percent"] == 100.0 for h in history)
+            assert all(h["flattening"] == 0.0 for h in history)  # ν = 0: every weight 1
+            assert all(h["effective_sample_size"] == h["rewarded_transitions"] for h in history)
             assert 5 <= history[-1]["rewarded_transitions"] <= 5 * 20  # early ends: fewer
             assert all(1 <= h["greedy_test_return"] <= 30 for h in history)
             assert all(len(h["j_mean"]) == (4 if mode == "AL" else 0) for h in history)
+            free = [h["reward_free_transitions"] for h in history]  # (so far: cumulative)
+            assert (free[0] > 0 and free[1] > free[0]) if mode == "AL" else free == [0, 0]
+            assert run["bought"] == 5 and "ε-greedy θ (ε = " in history[0]["chosen"]
     assert payload["summary"]["PL"]["seeds"] == [0, 1] and payload["t_test"] is not None
     assert all(math.isfinite(x) for x in _numbers(payload["runs"]))
 
@@ -220,23 +229,22 @@ def test_torchrl_pipeline_active_runs_are_reproducible(tmp_path):
 
 
 MOUNTAIN_CAR = ["--env", "MountainCar-v0", "--modes", "AL", "--seeds", "1"]
-MOUNTAIN_CAR += ["--first-sampler", "actor", "--iterations", "3", "--first-episodes", "2"]
-MOUNTAIN_CAR += ["--episodes", "2", "--reward-free-episodes", "1", "--repeats", "1"]
-MOUNTAIN_CAR += ["--steps", "20", "--test-episodes", "2", "--test-steps", "20"]
+MOUNTAIN_CAR += ["--iterations", "3", "--first-episodes", "2", "--episodes", "2"]
+MOUNTAIN_CAR += ["--reward-free-episodes", "1", "--repeats", "1", "--steps", "20"]
+MOUNTAIN_CAR += ["--test-episodes", "2", "--test-steps", "20"]
 
 
 def test_torchrl_pipeline_failed_then_resumed_buys_nothing_twice(tmp_path, monkeypatch, capsys):
-    """MountainCar, AL, iteration 1 bought by the user's actor. A run that fails at its third
-    purchase, resumed, keeps every stored reward and ends with an uninterrupted run's numbers;
-    the folder is refused without --resume."""
+    """MountainCar, AL, the user's actor a candidate. A run that fails at its third purchase,
+    resumed, keeps every stored reward and ends with an uninterrupted run's numbers; the folder
+    is refused without --resume."""
     expected = torchrl_pipeline.main([*MOUNTAIN_CAR, "--out-dir", str(tmp_path / "whole")])
     history = expected["runs"]["AL"]["0"]["history"]
-    assert history[0]["chosen"] == "the actor's warm start" and history[0]["j_mean"] == []
-    assert len(history[1]["j_mean"]) == 5  # four θ policies and the actor
+    assert all(len(h["j_mean"]) == 5 for h in history)  # four θ policies and the actor
     assert history[-1]["rewarded_transitions"] == 3 * 2 * 20  # no early end on MountainCar
     assert expected["runs"]["PL"] == {} and expected["t_test"] is None
 
-    buy, calls = pipe.collect_padded, []
+    buy, calls = torchrl_pipeline.Collector, []
 
     def failing(*args, **kwargs):
         calls.append(1)
@@ -245,10 +253,10 @@ def test_torchrl_pipeline_failed_then_resumed_buys_nothing_twice(tmp_path, monke
         return buy(*args, **kwargs)
 
     args = [*MOUNTAIN_CAR, "--out-dir", str(tmp_path / "cut")]
-    monkeypatch.setattr(pipe, "collect_padded", failing)
+    monkeypatch.setattr(torchrl_pipeline, "Collector", failing)
     with pytest.raises(RuntimeError, match="the robot broke"):
         torchrl_pipeline.main(args)
-    monkeypatch.setattr(pipe, "collect_padded", buy)
+    monkeypatch.setattr(torchrl_pipeline, "Collector", buy)
     store = tmp_path / "cut" / "checkpoints" / "AL_seed0.db"
     assert RunStore.read(store).num_episodes == 2 * 2  # iterations 1 and 2
     capsys.readouterr()
@@ -260,6 +268,76 @@ def test_torchrl_pipeline_failed_then_resumed_buys_nothing_twice(tmp_path, monke
     assert resumed["runs"]["AL"]["0"].pop("bought") == 2  # only iteration 3's
     expected["runs"]["AL"]["0"].pop("bought")
     assert _without(resumed) == _without(expected)
+
+
+@pytest.mark.parametrize("mode", ["AL", "PL"])
+def test_the_pipeline_run_is_the_users_own_loop_step_by_step(mode):
+    """A run of the example (``ActivePolicyIteration.run`` with the user's ``Collector`` as its
+    source, every purchase stored) is the README's own loop on the same spec, seed and envs:
+    ``choose()``, the user's Collector with ``sampling_policy()`` into their replay buffer,
+    ``fit(buffer[:])``, ``improve()``: the same J', choices, θ and greedy returns, bit for bit.
+    (The loop's own ``env.rollout`` draws otherwise: a Collector calls the policy once when it
+    is made, to read its output keys, which moves the policy's stream on by one step.)"""
+    args, spec = torchrl_pipeline.resolved(
+        torchrl_pipeline.Args(
+            iterations=3,
+            first_episodes=4,
+            episodes=2,
+            steps=20,
+            repeats=2,
+            reward_free_episodes=2,
+            test_episodes=2,
+            test_steps=50,
+        )  # fmt: skip
+    )
+    example = torchrl_pipeline.run(args, spec, mode, 3, DurableRun(None))
+
+    rows = cache(partial(pipe.serial_env, partial(torchrl_pipeline.make_env, args.env, 20)))
+
+    def tested(policy, seed: int) -> dict:
+        greedy = policy.with_rule(epsilon=0.0)
+        return {"greedy_test_return": torchrl_pipeline.mean_test_return(args, greedy, seed)}
+
+    api = ActivePolicyIteration(
+        spec.replace(seed=3, mode="active" if mode == "AL" else "passive"),
+        env=rows,
+        basis=torchrl_pipeline.BASIS[args.env](),
+        selector=SamplingPolicySelector(env=rows) if mode == "AL" else None,
+        evaluate=tested,
+    )
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(8, ndim=1))
+    with api:
+        for m in api.schedule:
+            api.choose()
+            collector = Collector(rows(m), api.sampling_policy(), frames_per_batch=m * 20,
+                                  total_frames=-1, trajs_per_batch=m, traj_format="padded",
+                                  auto_register_policy_transforms=False)  # fmt: skip
+            buffer.extend(next(iter(collector)))
+            collector.shutdown()
+            api.fit(buffer[:])
+            api.improve()
+    assert example["theta"] == api.theta.tolist() and example["bought"] == 8
+    for row, record in zip(example["history"], api.history, strict=True):
+        assert row["j_mean"] == (record.j_mean or []) and len(row["j_mean"]) == 4 * (mode == "AL")
+        assert row["sampling_rule"] == record.sampling_rule
+        assert row["rewarded_transitions"] == record.rewarded_transitions
+        assert row["reward_free_transitions"] == record.reward_free_transitions
+        assert row["greedy_test_return"] == record.performance["greedy_test_return"]
+
+
+def test_acrobot_is_a_pipeline_env_of_at_most_15000_rewarded_transitions_a_run():
+    """Acrobot-v1: observations scaled into [-1, 1] (cos, sin; the speeds by 4π and 9π), a
+    quadratic Q̂ per action (3 × 28 features), and a default run that buys at most 15,000
+    rewarded transitions (episodes of at most 500 steps: a DQN beside it runs 15,000 frames)."""
+    args, spec = torchrl_pipeline.resolved(torchrl_pipeline.Args(env="Acrobot-v1"))
+    assert sum(spec.rewarded.schedule) * spec.rewarded.num_steps <= 15_000
+    assert spec.rewarded.num_steps == args.test_steps == 500 and spec.evaluation.fit == "lstd"
+    env = torchrl_pipeline.make_env("Acrobot-v1", 50)
+    env.set_seed(0)
+    rollout = env.rollout(50, torchrl_pipeline.make_actor("Acrobot-v1"))
+    obs = torch.cat([rollout["observation"], rollout["next", "observation"]])
+    assert obs.shape[-1] == 6 and obs.abs().max() <= 1.0 and obs[:, 4:].abs().max() < 0.5
+    assert torchrl_pipeline.BASIS["Acrobot-v1"]().num_features == 3 * 28
 
 
 # -- the library's part ----------------------------------------------------------------------

@@ -14,7 +14,7 @@ and the results as a long CSV and a JSON.
 :mod:`torch_api.experiment.results`           statistics, tables, the CSV and the JSON
 :mod:`torch_api.experiment.plots`             the figure: measures per iteration, AL − PL
 :mod:`torch_api.experiment.weight_warnings`   collapsed importance weights, summarised once
-:mod:`torch_api.experiment.pipeline`          a user's own TorchRL loop: its steps made once
+:mod:`torch_api.experiment.pipeline`          a TorchRL pipeline's rows and seeded test returns
 :mod:`torch_api.experiment.seeds`             a user's runs over seeds: stored, summarised, written
 ============================================  ============================================
 """

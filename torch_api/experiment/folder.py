@@ -173,9 +173,11 @@ def stored_summary(paths: Sequence[Path]) -> tuple[int, int]:
             stored = RunStore.read(path)
         except StoreError:
             continue
-        trials = stored.config.get("num_trials") or 1
+        config = stored.config  # (a loop's identity: "rewarded.schedule", "trials.num_trials")
+        trials = config.get("num_trials", config.get("trials.num_trials")) or 1
         episodes += stored.num_episodes * trials
-        done, total = len(stored.records), len(stored.config.get("schedule", []))
+        schedule = config.get("schedule", config.get("rewarded.schedule", []))
+        done, total = len(stored.records), len(schedule)
         last = max(last, done)
         if done < total:
             in_flight.append(done + 1)

@@ -1,4 +1,4 @@
-"""Runs of a user's own loop over seeds, AL and PL paired: stored, summarised and written.
+"""Runs of a user's pipeline over seeds, AL and PL paired: stored, summarised and written.
 
 Every run (mode, seed) in its own store in one output folder, where an
 :class:`~torch_api.experiment.options.Execution` says (:func:`seeds_folder`,
@@ -21,8 +21,8 @@ import torch
 from torch_api.experiment.folder import durable_runs, folder_held
 from torch_api.experiment.options import Execution
 from torch_api.experiment.results import mean_se, paired_test
+from torch_api.loop.durable import DurableRun
 from torch_api.runs.files import save_figure_atomic, write_text_atomic
-from torch_api.runs.store import RunStore
 
 __all__ = ["plot_seeds", "run_seeds", "seeds_folder", "summarise_seeds", "write_seeds"]
 
@@ -141,18 +141,18 @@ def run_seeds(
     execution: Execution,
     modes: Sequence[str],
     seeds: Sequence[int],
-    run: Callable[[str, int, RunStore], dict],
+    run: Callable[[str, int, DurableRun], dict],
     *,
-    config: dict,
     files: Sequence[Path] = (),
 ) -> dict[str, dict[int, dict]]:
-    """``run(mode, seed, store)`` for each seed of ``seeds`` and each of its ``modes`` (AL, PL)
-    in turn, each stored as it goes in ``<out_dir>/checkpoints/<mode>_seed<seed>.db``
-    (``config`` with the mode and the seed: what a resumed store must match), holding the folder
-    ``execution.out_dir`` (one writer at a time; stored runs or ``files`` of an earlier run need
-    ``execution.resume`` or ``overwrite``) on ``execution.threads`` torch threads (0: torch's
-    default); SIGINT/SIGTERM and store errors end the script with one line
-    (:mod:`torch_api.experiment.folder`).
+    """``run(mode, seed, durable)`` for each seed of ``seeds`` and each of its ``modes`` (AL,
+    PL) in turn, each run's store a :class:`~torch_api.loop.durable.DurableRun` at
+    ``<out_dir>/checkpoints/<mode>_seed<seed>.db`` (``execution.resume``, ``overwrite``) for
+    the run's :class:`~torch_api.ActivePolicyIteration` (whose identity a resumed store must
+    match), holding the folder ``execution.out_dir`` (one writer at a time; stored runs or
+    ``files`` of an earlier run need ``execution.resume`` or ``overwrite``) on
+    ``execution.threads`` torch threads (0: torch's default); SIGINT/SIGTERM and store errors
+    end the script with one line (:mod:`torch_api.experiment.folder`).
 
     Returns: ``{"AL": {seed: run}, "PL": {seed: run}}`` (a mode not run stays empty).
     """
@@ -165,9 +165,8 @@ def run_seeds(
     results: dict[str, dict[int, dict]] = {"AL": {}, "PL": {}}
     with folder_held(out, paths, files, execution), durable_runs(paths, out):
         for (mode, seed), path in zip(runs, paths, strict=True):
-            mine = config | {"mode": mode, "seed": seed}
-            with RunStore(path, config=mine, resume=resume, overwrite=overwrite) as store:
-                results.setdefault(mode, {})[seed] = run(mode, seed, store)
+            durable = DurableRun(path, resume=resume, overwrite=overwrite)
+            results.setdefault(mode, {})[seed] = run(mode, seed, durable)
     return results
 
 
