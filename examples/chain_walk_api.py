@@ -31,6 +31,7 @@ from torch_api.experiment import (
     Chunk,
     Execution,
     Experiment,
+    checked_device,
     derived_seed,
     make_iteration,
     plot_paired,
@@ -173,8 +174,7 @@ def main(argv: list[str] | None = None) -> dict:
         for name in names:
             run_spec(args, schedules[name], seeds[name])  # (RunSpec checks its settings)
         args.execution.check_chunks(args.trials)
-        if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"device {args.device!r}: torch sees no CUDA GPU here")
+        checked_device(args.device)
         Path(args.execution.out_dir).mkdir(parents=True, exist_ok=True)
     except (ValueError, RuntimeError, OSError) as error:  # (a bad device: RuntimeError)
         print(f"error: {error}", file=sys.stderr)

@@ -17,7 +17,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-import torch
 import tyro
 from tyro.conf import FlagCreatePairsOff, OmitArgPrefixes
 
@@ -175,9 +174,7 @@ def main(argv: list[str] | None = None, on_commit=None) -> dict:
     try:  # every setting checked before any work: one line naming it, exit 2
         if not 1 <= args.iterations <= 7 or args.episodes < 0:
             raise ValueError(f"iterations must lie in 1..7, got {args.iterations}; episodes >= 0")
-        device, gpus = torch.device(args.device), torch.cuda.device_count()
-        if device.type != "cpu" and (device.index or 0) >= gpus:  # (a CUDA GPU torch sees)
-            raise ValueError(f"device {args.device!r}: torch sees {gpus} CUDA GPUs here")
+        ex.checked_device(args.device)
         make_basis(args.basis_widths), PhysicsAudit(args.physics_audit)  # (each checks its own)
         specs = {name: make_spec(args, schedule, args.seed) for name, schedule in schedules.items()}
         args.execution.check_chunks(args.trials)

@@ -19,7 +19,7 @@ and the results as a long CSV and a JSON.
 ============================================  ============================================
 """
 
-from torch_api.experiment.options import BACKENDS, LOGGERS, Execution
+from torch_api.experiment.options import BACKENDS, LOGGERS, Execution, checked_device
 from torch_api.experiment.plots import plot_paired
 from torch_api.experiment.results import (
     COLUMNS,
@@ -49,6 +49,7 @@ __all__ = [
     "Chunk",
     "Execution",
     "Experiment",
+    "checked_device",
     "derived_seed",
     "kept_weight_warnings",
     "make_iteration",

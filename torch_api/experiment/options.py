@@ -12,9 +12,12 @@ import importlib.util
 import os
 from dataclasses import dataclass
 
+import torch
+
+from torch_api._checks import _check_device
 from torch_api.runs.dispatch import BACKENDS
 
-__all__ = ["BACKENDS", "LOGGERS", "Execution"]
+__all__ = ["BACKENDS", "LOGGERS", "Execution", "checked_device"]
 
 LOGGERS = ("none", "csv", "tensorboard", "wandb")
 """TorchRL loggers the learning curves can go to (``--logger``)."""
@@ -84,3 +87,9 @@ class Execution:
     def num_workers(self) -> int:
         """Worker processes of the processes backend."""
         return self.workers or os.cpu_count() or 1
+
+
+def checked_device(device: str) -> torch.device:
+    """An example's ``--device`` as a ``torch.device`` that is there, or a ``ValueError`` naming
+    it (a CUDA device needs a GPU torch sees)."""
+    return _check_device(device)
