@@ -1,11 +1,9 @@
 """Active policy iteration and its passive baseline (paper section 4.1, Algorithm 1): the loop.
 
-The loop holds small objects, each owning its state: the policies
-(:class:`~torch_api.loop.policies.LoopPolicies`), the buyer (steps 1-2,
-:class:`~torch_api.loop.buying.RewardBuyer`), the evaluation (step 3,
+Small objects own their state: the policies (:class:`~torch_api.loop.policies.LoopPolicies`),
+the buyer (steps 1-2, :class:`~torch_api.loop.buying.RewardBuyer`), the evaluation (step 3,
 :class:`~torch_api.core.fit.PolicyEvaluation`) and the store it was handed
-(:class:`~torch_api.loop.durable.DurableRun`). Its own state is θ, pi_l, the rewarded
-episodes and the records."""
+(:class:`~torch_api.loop.durable.DurableRun`); the loop's own: θ, pi_l, episodes, records."""
 
 from __future__ import annotations
 
@@ -241,6 +239,12 @@ class ActivePolicyIteration:
         trials = math.prod(self.trial_dims)
         return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
 
+    def _know_actions(self, num_episodes: int) -> None:  # (from the env of M rows per trial)
+        if self.policies.know_actions(self.envs(math.prod(self.trial_dims) * num_episodes)):
+            self.policy = self.policy.with_action_spec(self.policies.action_encoding)
+            if self.selector is not None:
+                self.selector.know_actions(self.policies.action_encoding)
+
     # -- the steps of Algorithm 1 -------------------------------------------------------------
 
     def choose(self) -> Choice:
@@ -250,10 +254,7 @@ class ActivePolicyIteration:
         self._check_open()
         if self.buyer.choice is None and self.buyer.pending is None:
             l_now, num_episodes = self.iteration + 1, self.schedule[self.iteration]
-            if self.policies.know_actions(self.envs(math.prod(self.trial_dims) * num_episodes)):
-                self.policy = self.policy.with_action_spec(self.policies.action_encoding)
-                if self.selector is not None:
-                    self.selector.know_actions(self.policies.action_encoding)
+            self._know_actions(num_episodes)
             self.buyer.select(
                 l_now,
                 num_episodes,
@@ -308,6 +309,7 @@ class ActivePolicyIteration:
             raise RuntimeError("improve() follows fit() (step 3) of the same iteration")
         (fitted, transitions, started), self._fitted = self._fitted, None
         l_now = self.iteration + 1
+        self._know_actions(self.schedule[l_now - 1])  # (a resumed run may not have built one)
         self.policy = self.policies.evaluation(self.theta, l_now + 1)
         choice = self.buyer.take_choice()
         performance = None
@@ -374,9 +376,8 @@ class ActivePolicyIteration:
         self.policy = self.policies.evaluation(self.theta, self.iteration + 1)
 
     def load(self, path) -> None:
-        """Take over the state of the run stored at ``path`` (read only; to continue it, build
-        the loop with ``durable=DurableRun(path, resume=True)``). A ``CorruptRunError`` (a
-        failed check, another identity) leaves the object as it was."""
+        """Take over the state of the run stored at ``path``, read only (to continue it:
+        ``durable=DurableRun(path, resume=True)``); a ``CorruptRunError`` changes nothing."""
         self._take(DurableRun.read(path, self.identity, self.layout))
 
     def _check_open(self) -> None:
@@ -384,10 +385,9 @@ class ActivePolicyIteration:
             raise RuntimeError(f"the run's store {self.durable.path} is closed")
 
     def close(self) -> None:
-        """Close the run's store (releasing its lock) and the envs built from env factories
-        (rewarded and reward-free), e.g. the worker processes of ``env=lambda rows:
-        ParallelEnv(rows, make_env)``; envs given as such are the caller's to close. The
-        object keeps its state: envs are built again if it goes on, a store is not."""
+        """Close the run's store (its lock) and the envs built from env factories (e.g. the
+        workers of ``env=lambda rows: ParallelEnv(rows, make_env)``), not envs given as such;
+        the object keeps its state (envs are built again if it goes on, a store is not)."""
         self.durable.close()
         self.envs.close()
         if self.selector is not None:
