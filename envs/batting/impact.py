@@ -71,9 +71,10 @@ class ImpactWindow:
         near = np.zeros((len(states), self.n_coarse), dtype=bool)
         rows = np.flatnonzero(self.in_play & ~self.hit)  # balls resting on their pins
         if len(rows):
-            qpos = states[rows, :, self._qpos_adr : self._qpos_adr + 5]  # phi1, phi2, ball
-            qvel = states[rows, :, self._qvel_adr : self._qvel_adr + 2]  # [E', n + 1, *]
-            q0, q1, v0, v1 = qpos[:, :-1, :2], qpos[:, 1:, :2], qvel[:, :-1], qvel[:, 1:]
+            # (the columns first, a view, then the rows: a copy of nq + nv columns only)
+            qpos, qvel = self._qpos(states)[rows], self._qvel(states)[rows]  # [E', n + 1, *]
+            q0, q1 = qpos[:, :-1, :2], qpos[:, 1:, :2]
+            v0, v1 = qvel[:, :-1, :2], qvel[:, 1:, :2]
             ball = 0.5 * (qpos[:, :-1, 2:5] + qpos[:, 1:, 2:5])  # at rest, [E', n, 3]
             # Most intervals are far from the ball: a lower bound of the gap at every point,
             # the gap at the interval's start less the most any bat point can move in it,

@@ -240,7 +240,8 @@ class ActivePolicyIteration:
         return (self.rewarded.num_transitions if len(self.rewarded) else 0) // trials
 
     def _know_actions(self, num_episodes: int) -> None:  # (from the env of M rows per trial)
-        if self.policies.know_actions(self.envs(math.prod(self.trial_dims) * num_episodes)):
+        if self.policies.action_encoding is None:  # (once known, no env is built for it)
+            self.policies.know_actions(self.envs(math.prod(self.trial_dims) * num_episodes))
             self.policy = self.policy.with_action_spec(self.policies.action_encoding)
             if self.selector is not None:
                 self.selector.know_actions(self.policies.action_encoding)
@@ -341,8 +342,7 @@ class ActivePolicyIteration:
         return selection.episodes_for(num_episodes) if selection is not None else num_episodes
 
     def step(self) -> IterationRecord:
-        """Run one iteration of Algorithm 1 (:meth:`buy`, :meth:`fit`, :meth:`improve`) and
-        return its record."""
+        """One iteration of Algorithm 1 (:meth:`buy`, :meth:`fit`, :meth:`improve`); its record."""
         if self.iteration >= len(self.schedule):
             raise RuntimeError(f"all {len(self.schedule)} iterations of the schedule are done")
         self.buy()  # steps 1-2 (after a resume, the rewards may be bought already)
