@@ -22,15 +22,28 @@ The swing's MuJoCo cost is measured beside it: bare ``Batch.step`` replaying a s
 run's own swing rollouts (the engine of record's coarse RK4 on the same states). With
 ``--swing mujoco`` the run itself swings in MuJoCo.
 
-    python benchmarks/profile_batting.py --trials 32
+With ``--command``, first the command itself, ``python examples/train_batting.py`` (its default
+chunks and worker processes, T trials, output to a temporary folder), from a fresh interpreter:
+its wall time from start to exit beside its floor, the dependencies' start-up and exit (a fresh
+interpreter importing torch, TensorDict, TorchRL and MuJoCo) plus the work's floor above shared
+over the cores its two chunks a run can use (at most two).
+
+    python benchmarks/profile_batting.py --trials 32 [--command]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
 import time
 from collections import defaultdict
 from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 from _physics_floor import PhysicsAudit, replay_batch
@@ -50,6 +63,8 @@ from torch_api.loop.spec import RunSpec
 
 DECREASING = (10, 10, 7, 7, 7, 4, 4)  # the batting 'decreasing' schedule (section 5)
 TESTS = 20  # test episodes per trial behind one score (eq. 68)
+ROOT = Path(__file__).resolve().parents[1]
+DEPENDENCIES = "import torch, tensordict, torchrl.envs, mujoco"  # what any such program imports
 TIMERS: dict[str, float] = defaultdict(float)
 _DEPTH = {"algebra": 0, "swing": 0}  # nested calls are timed by the outermost only
 
@@ -117,9 +132,13 @@ def basis() -> GaussianActionBasis:
     return GaussianActionBasis(centers=basis_centers(), tau=BASIS_TAU, num_actions=2)
 
 
-def run_arguments(doc: str, *, trials: int, audit: float, out: str) -> argparse.Namespace:
+def run_arguments(
+    doc: str, *, trials: int, audit: float, out: str, command: bool = False
+) -> argparse.Namespace:
     """The command line of a timed batting run (this script's, bench_batting_iteration's)."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    if command:
+        parser.add_argument("--command", action="store_true", help="time the example's command too")
     parser.add_argument("--trials", type=int, default=trials)
     parser.add_argument("--iterations", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
@@ -130,6 +149,59 @@ def run_arguments(doc: str, *, trials: int, audit: float, out: str) -> argparse.
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     return args
+
+
+def timed_process(argv: list[str]) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system, its children included) of ``argv`` run from the
+    repository's root to its exit; its output is shown only if it fails."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode:
+        raise RuntimeError(f"{argv} exited with {done.returncode}:\n{done.stdout}{done.stderr}")
+    return wall, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+
+
+def time_command(args: argparse.Namespace) -> dict:
+    """``python examples/train_batting.py`` (T trials, L iterations, its default chunks and
+    workers) from start to exit; the example's import alone; the dependencies' alone."""
+    python = sys.executable
+    with tempfile.TemporaryDirectory() as out:
+        flags = ["--trials", str(args.trials), "--iterations", str(args.iterations)]
+        wall, cpu = timed_process([python, "examples/train_batting.py", *flags, "--out-dir", out])
+        experiment = json.loads((Path(out) / "train_batting.json").read_text())["wall_seconds"]
+    example, _ = timed_process(
+        [python, "-c", "import sys; sys.path[:0] = ['examples']; import train_batting"]
+    )
+    dependencies, _ = timed_process([python, "-c", DEPENDENCIES])
+    return dict(
+        wall=wall, cpu=cpu, experiment=experiment, example=example, dependencies=dependencies
+    )
+
+
+def print_command(command: dict, floor: float) -> dict:
+    """The command's parts beside their floors: the dependencies' start-up and exit, and the
+    work's floor (``floor``, one core) shared over the cores the default's chunks can use."""
+    cores = min(os.cpu_count() or 1, 2)  # two chunks a run, AL's and PL's one after another
+    rest = command["wall"] - command["experiment"] - command["example"]
+    parts = {  # part: (seconds in the command, its floor)
+        "start-up and exit: the example's imports": (command["example"], command["dependencies"]),
+        f"the experiment ({cores} worker processes)": (command["experiment"], floor / cores),
+        "arguments, report, figure, the workers' pool": (rest, 0.0),
+    }
+    total = sum(f for _, f in parts.values())
+    print(
+        "\n`python examples/train_batting.py` from the shell, start to exit: "
+        f"{command['wall']:.1f} s wall, {command['cpu']:.1f} CPU-s; its floor: the dependencies' "
+        f"start-up and exit ({DEPENDENCIES}) plus the work's floor over {cores} core(s)\n"
+    )
+    print("| part | in the command (s) | floor (s) |\n|---|---:|---:|")
+    for name, (seconds, part_floor) in parts.items():
+        print(f"| {name} | {seconds:.2f} | {part_floor:.2f} |")
+    print(f"| **the command** | {command['wall']:.2f} | {total:.2f} |")
+    return command | {"cores": cores, "floor_s": total, "wall_over_floor": command["wall"] / total}
 
 
 def active_run(args: argparse.Namespace, make, mode: str = "active", evaluate=None):
@@ -151,7 +223,10 @@ def active_run(args: argparse.Namespace, make, mode: str = "active", evaluate=No
 
 
 def main() -> dict:
-    args = run_arguments(__doc__, trials=32, audit=0.05, out="results/profile_batting.json")
+    args = run_arguments(
+        __doc__, trials=32, audit=0.05, out="results/profile_batting.json", command=True
+    )
+    command = time_command(args) if args.command else None  # (alone: before the profile)
     audit = SplitAudit(args.audit)
 
     def make(rows: int, seed: int | None = None) -> BattingEnv:
@@ -212,6 +287,8 @@ def main() -> dict:
         "physics_steps": steps,
         "machine": machine_info(),
     }
+    if command is not None:
+        payload["default_command"] = print_command(command, floor)
     return write_result(args.out, payload)
 
 

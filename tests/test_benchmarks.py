@@ -17,7 +17,10 @@ BENCHMARKS = ROOT / "benchmarks"
     [
         (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
-        (["profile_batting.py", "--trials", "1", "--iterations", "1"], "| **the main job** |"),
+        (
+            ["profile_batting.py", "--trials", "2", "--iterations", "1", "--command"],
+            "| **the command** |",
+        ),
         (
             ["bench_batting_iteration.py", "--trials", "1", "--iterations", "1", "--audit", "1"],
             "| part / floor | |",
