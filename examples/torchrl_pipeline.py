@@ -187,8 +187,9 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(2) from None
     started, seeds = time.perf_counter(), range(args.seed, args.seed + args.seeds)
     files = [out / "torchrl_pipeline.json", out / "torchrl_pipeline.png"]
+    test = {"test_steps": args.test_steps, "test_episodes": args.test_episodes}  # resume: same
     results = run_seeds(args.execution, args.modes.split(","), seeds, partial(run, args, spec),
-                        files=files)  # fmt: skip
+                        files=files, settings=test)  # fmt: skip
     actor, draw = make_actor(args.env), ExplorationType.RANDOM  # the user's actor alone, sampling
     alone = {s: mean_test_return(args, actor, derive_seed(s, 0, "evaluation"), draw) for s in seeds}
     wall, title = time.perf_counter() - started, f"{args.env} through TorchRL"

@@ -791,3 +791,10 @@ def test_an_interrupt_while_the_handlers_are_restored_leaves_no_signal_blocked(m
         signal.signal(signal.SIGTERM, expected[1])
     assert signal.SIGINT not in blocked and signal.SIGTERM not in blocked
     assert handlers == expected  # both put back
+
+
+def test_a_durable_runs_own_settings_are_plain_values():
+    """The caller's settings go into the stored identity: a list or an object is refused."""
+    for bad in ({"test_steps": [1, 2]}, {"test": object()}, {3: 1}):
+        with pytest.raises(ValueError, match="settings must map names to numbers"):
+            DurableRun(None, settings=bad)

@@ -350,3 +350,19 @@ def test_the_quadratic_basis_is_one_block_of_1_s_and_s_s_per_action():
     assert basis.kernels(s).tolist() == [[1.0, 2.0, 3.0, 4.0, 6.0, 9.0]]
     with pytest.raises(ValueError, match="obs must end in 2"):
         basis.kernels(torch.ones(1, 3))
+
+
+def test_a_resume_with_other_test_settings_is_refused_naming_them(tmp_path, capsys):
+    """The stored runs' greedy returns were measured with the first call's test: a resume with
+    another (more test episodes, longer ones) would write them under the new settings."""
+    args = [*PIPELINE_TINY, "--modes", "PL", "--seeds", "1", "--out-dir", str(tmp_path)]
+    first = torchrl_pipeline.main(args)
+    for flags, name in (
+        (["--test-episodes", "3"], "test_episodes"),
+        (["--test-steps", "25"], "test_steps"),
+    ):
+        with pytest.raises(SystemExit):
+            torchrl_pipeline.main([*args, *flags, "--resume"])
+        assert f"was made with other settings: ['settings.{name}']" in capsys.readouterr().err
+    resumed = torchrl_pipeline.main([*args, "--resume"])["runs"]["PL"]["0"]  # the same test
+    assert resumed["history"] == first["runs"]["PL"]["0"]["history"] and resumed["bought"] == 0

@@ -144,12 +144,14 @@ def run_seeds(
     run: Callable[[str, int, DurableRun], dict],
     *,
     files: Sequence[Path] = (),
+    settings: dict | None = None,
 ) -> dict[str, dict[int, dict]]:
     """``run(mode, seed, durable)`` for each seed of ``seeds`` and each of its ``modes`` (AL,
     PL) in turn, each run's store a :class:`~torch_api.loop.durable.DurableRun` at
     ``<out_dir>/checkpoints/<mode>_seed<seed>.db`` (``execution.resume``, ``overwrite``) for
     the run's :class:`~torch_api.ActivePolicyIteration` (whose identity a resumed store must
-    match), holding the folder ``execution.out_dir`` (one writer at a time; stored runs or
+    match, and ``settings``: the script's own, e.g. its test's), holding the folder
+    ``execution.out_dir`` (one writer at a time; stored runs or
     ``files`` of an earlier run need ``execution.resume`` or ``overwrite``) on
     ``execution.threads`` torch threads (0: torch's default); SIGINT/SIGTERM and store errors
     end the script with one line (:mod:`torch_api.experiment.folder`).
@@ -165,7 +167,7 @@ def run_seeds(
     results: dict[str, dict[int, dict]] = {"AL": {}, "PL": {}}
     with folder_held(out, paths, files, execution), durable_runs(paths, out):
         for (mode, seed), path in zip(runs, paths, strict=True):
-            durable = DurableRun(path, resume=resume, overwrite=overwrite)
+            durable = DurableRun(path, resume=resume, overwrite=overwrite, settings=settings)
             results.setdefault(mode, {})[seed] = run(mode, seed, durable)
     return results
 

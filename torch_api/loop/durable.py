@@ -13,6 +13,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import NoneType
 from typing import NamedTuple
 
 import torch
@@ -40,6 +41,10 @@ class DurableRun:
             missing or empty store starts fresh.
         overwrite: discard a stored run.
         on_commit: called after every commit (e.g. to count commits, or stop a test run).
+        settings: the caller's own settings its results depend on beyond the run's identity
+            (say, the episodes and length of its test), ``{name: number, string, bool or
+            None}``: stored with the run and checked on resume beside its identity (a refusal
+            names ``settings.<name>``).
 
     Attributes:
         store: the :class:`~torch_api.runs.store.RunStore` once opened, or None.
@@ -52,9 +57,19 @@ class DurableRun:
         resume: bool = False,
         overwrite: bool = False,
         on_commit: Callable[[], None] | None = None,
+        settings: dict | None = None,
     ) -> None:
         if path is None and (resume or overwrite):
             raise ValueError("resume and overwrite need the path of a store")
+        self.settings = dict(settings or {})
+        for name, value in self.settings.items():
+            if not isinstance(name, str) or not isinstance(
+                value, (bool, int, float, str, NoneType)
+            ):
+                raise ValueError(
+                    f"settings must map names to numbers, strings, bools or None, got "
+                    f"{name!r}: {value!r}"
+                )
         self.path = None if path is None else Path(path)
         self.resume, self.overwrite = bool(resume), bool(overwrite)
         self.on_commit = on_commit or (lambda: None)
@@ -74,6 +89,7 @@ class DurableRun:
         self.layout = layout
         if self.path is None:
             return None
+        identity = identity | {f"settings.{name}": v for name, v in self.settings.items()}
         self.store = RunStore(
             self.path, config=identity, resume=self.resume, overwrite=self.overwrite
         )
