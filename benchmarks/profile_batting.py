@@ -37,6 +37,7 @@ import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -139,6 +140,7 @@ def run_arguments(
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     if command:
         parser.add_argument("--command", action="store_true", help="time the example's command too")
+        parser.add_argument("--repeats", type=int, default=3, help="rounds of the command's timing")
     parser.add_argument("--trials", type=int, default=trials)
     parser.add_argument("--iterations", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
@@ -166,34 +168,40 @@ def timed_process(argv: list[str]) -> tuple[float, float]:
 
 def time_command(args: argparse.Namespace) -> dict:
     """``python examples/train_batting.py`` (T trials, L iterations, its default chunks and
-    workers) from start to exit; the example's import alone; the dependencies' alone."""
-    python = sys.executable
-    with tempfile.TemporaryDirectory() as out:
-        flags = ["--trials", str(args.trials), "--iterations", str(args.iterations)]
-        wall, cpu = timed_process([python, "examples/train_batting.py", *flags, "--out-dir", out])
-        experiment = json.loads((Path(out) / "train_batting.json").read_text())["wall_seconds"]
-    example, _ = timed_process(
-        [python, "-c", "import sys; sys.path[:0] = ['examples']; import train_batting"]
-    )
-    dependencies, _ = timed_process([python, "-c", DEPENDENCIES])
-    return dict(
-        wall=wall, cpu=cpu, experiment=experiment, example=example, dependencies=dependencies
-    )
+    workers) from start to exit, the example's import alone and the dependencies' alone, in
+    ``args.repeats`` interleaved rounds (load from elsewhere hits all three alike): the median
+    of each, and every round's numbers (``rounds``)."""
+    python, rounds = sys.executable, []
+    flags = ["--trials", str(args.trials), "--iterations", str(args.iterations)]
+    example = [python, "-c", "import sys; sys.path[:0] = ['examples']; import train_batting"]
+    for _ in range(args.repeats):
+        with tempfile.TemporaryDirectory() as out:
+            wall, cpu = timed_process(
+                [python, "examples/train_batting.py", *flags, "--out-dir", out]
+            )
+            result = json.loads((Path(out) / "train_batting.json").read_text())
+        one = dict(wall=wall, cpu=cpu, experiment=result["wall_seconds"])
+        one |= dict(example=timed_process(example)[0])
+        one |= dict(dependencies=timed_process([python, "-c", DEPENDENCIES])[0])
+        rounds.append(one | {"rest": wall - one["experiment"] - one["example"]})
+    return {key: statistics.median(r[key] for r in rounds) for key in rounds[0]} | {
+        "rounds": rounds
+    }
 
 
 def print_command(command: dict, floor: float) -> dict:
     """The command's parts beside their floors: the dependencies' start-up and exit, and the
     work's floor (``floor``, one core) shared over the cores the default's chunks can use."""
     cores = min(os.cpu_count() or 1, 2)  # two chunks a run, AL's and PL's one after another
-    rest = command["wall"] - command["experiment"] - command["example"]
     parts = {  # part: (seconds in the command, its floor)
         "start-up and exit: the example's imports": (command["example"], command["dependencies"]),
         f"the experiment ({cores} worker processes)": (command["experiment"], floor / cores),
-        "arguments, report, figure, the workers' pool": (rest, 0.0),
+        "arguments, report, figure, the workers' pool": (command["rest"], 0.0),
     }
     total = sum(f for _, f in parts.values())
     print(
-        "\n`python examples/train_batting.py` from the shell, start to exit: "
+        f"\n`python examples/train_batting.py` from the shell, start to exit (medians of "
+        f"{len(command['rounds'])} interleaved rounds): "
         f"{command['wall']:.1f} s wall, {command['cpu']:.1f} CPU-s; its floor: the dependencies' "
         f"start-up and exit ({DEPENDENCIES}) plus the work's floor over {cores} core(s)\n"
     )

@@ -18,7 +18,16 @@ BENCHMARKS = ROOT / "benchmarks"
         (["bench_j.py", "--quick"], "| n | batched J | floor (2 matmuls) |"),
         (["bench_scaling.py", "--quick"], "Order of growth: wall s ~ trials^"),
         (
-            ["profile_batting.py", "--trials", "2", "--iterations", "1", "--command"],
+            [
+                "profile_batting.py",
+                "--trials",
+                "2",
+                "--iterations",
+                "1",
+                "--command",
+                "--repeats",
+                "1",
+            ],
             "| **the command** |",
         ),
         (
