@@ -10,7 +10,9 @@ The example spends 500,100 frames; here a run of task i buys ``--frames[i]`` (Ca
 10,000: the showcase buys about 8,200 rewarded transitions a run; Acrobot 15,000: the
 showcase's Acrobot cap), so the two settings counted in frames, the ε annealing and the random
 frames before learning, are scaled by ``frames / 500,100`` (:func:`scaled`; unscaled, the
-10,000 random frames would be the whole budget and the network would never train).
+10,000 random frames would be the whole budget and the network would never train). TorchRL's
+``Collector`` draws random actions for whole batches: the scaled 200 (CartPole) and 300
+(Acrobot) random frames are its first batch of 1,000 (it warns so).
 
 Each seed's greedy policy is then tested as the library's showcase tests its last iteration
 (``examples/torchrl_pipeline.py``): 5 test episodes of at most 500 steps in a seeded
@@ -144,6 +146,7 @@ def train(env_id: str, config: dict, seed: int) -> tuple[QValueActor, dict]:
         frames_per_batch=config["frames_per_batch"],
         total_frames=config["total_frames"],
         init_random_frames=config["init_random_frames"],
+        auto_register_policy_transforms=False,  # as the recorded runs (TorchRL 0.15's default)
     )
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(config["buffer_size"]), batch_size=config["batch_size"]
@@ -317,10 +320,11 @@ def data_file(args: Args, configs: dict, runs: list[dict], library: dict, wall: 
         "note": f"Greedy test return: {args.test_episodes} seeded test episodes of at most "
         f"{args.test_steps} steps, the library showcase's test of its last iteration. DQN: "
         "TorchRL's sota-implementations/dqn/config_cartpole.yaml, untuned, with the ε annealing "
-        "and the random frames scaled to the budget (dqn_config); TorchRL has no Acrobot DQN "
-        "config, so Acrobot-v1 runs the same CartPole config, untuned, scaled the same way. "
-        "DQN buys exactly its frames; the library's runs buy at most their schedule's episodes "
-        "(each ends early when the episode does).",
+        "and the random frames scaled to the budget (dqn_config; TorchRL's Collector draws "
+        "random actions for whole batches, so for its first 1,000 frames); TorchRL has no "
+        "Acrobot DQN config, so Acrobot-v1 runs the same CartPole config, untuned, scaled the "
+        "same way. DQN buys exactly its frames; the library's runs buy at most their schedule's "
+        "episodes (each ends early when the episode does).",
         "library_code": args.library_code,
         "torchrl_config": TORCHRL_CONFIG,
         "dqn_config": configs,
