@@ -217,8 +217,14 @@ def collect_with_collector(
     ``trajs_per_batch=num_episodes, traj_format="padded"``) running ``policy`` on an env whose
     episodes last at most ``num_steps`` steps (e.g. a ``StepCounter(max_steps=num_steps)``).
     Its batches are read as :meth:`EpisodeBuffer.extend` reads them (flat or padded;
-    trajectories cut at a batch's end joined with their continuation) until ``num_episodes``
-    whole episodes are in; the first ``num_episodes`` are kept, padded to ``num_steps``.
+    trajectories cut at a batch's end joined with their continuation) until the
+    ``num_episodes`` episodes that *started* first are whole; those are kept, padded to
+    ``num_steps``. A collector numbers trajectories as they start (TorchRL's ``("collector",
+    "traj_ids")``, from 0 for a new collector): the kept ones are those numbered below
+    ``num_episodes`` (with one row per episode, each row's first). The first to *end* would be
+    biased towards short episodes: rows running side by side, a row whose episodes fail early
+    ends several before a row whose episode lasts ends one. Batches without trajectory ids
+    (rollouts ``[E, N]``, one episode a row) are kept in the order given.
     The collector is shut down afterwards. The collector's env and its exploration type are the
     user's (a ``Collector`` samples, ``ExplorationType.RANDOM``, by default); every batch's
     actions are checked against the collector's ``env.action_spec`` where it has one.
@@ -230,7 +236,9 @@ def collect_with_collector(
 
     Raises:
         ValueError: an episode longer than ``num_steps`` (at the first batch that holds one,
-            before any episode is used), or actions outside the spec.
+            before any episode is used), actions outside the spec, or a collector whose
+            trajectories are not numbered from its first reset (one used before: make a new
+            collector for each call).
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
@@ -244,12 +252,16 @@ def collect_with_collector(
         policy.action_encoding, policy.one_hot = encoding, encoding.one_hot
     for _ in range(len(getattr(env, "batch_size", ()))):
         row_spec = row_spec[0]  # the spec of one env row
+    rows = math.prod(getattr(env, "batch_size", ()) or (1,))
     buffer = EpisodeBuffer(rewarded=rewarded, capacity=16 * num_episodes + 64)
     try:
         for count, batch in enumerate(collector, start=1):
             if row_spec is not None:  # the batch's first step is always a real one
                 first = batch["action"].reshape(-1, *row_spec.shape)[0]
                 check_actions(row_spec, first, who=f"the collector's policy {_name(policy)}")
+            batch = _started_first(batch, num_episodes, max(rows, num_episodes), count == 1)
+            if batch is None:
+                continue
             buffer.extend(batch, validate=validate)
             _check_step_cap(buffer, num_steps, count)
             if len(buffer.whole()) >= num_episodes:
@@ -272,6 +284,32 @@ def collect_with_collector(
     if validate:
         validate_episodes(episodes, rewarded=rewarded)
     return episodes
+
+
+def _started_first(batch: TensorDictBase, count: int, first_ids: int, first_batch: bool):
+    """The steps of ``batch`` (a collector's, flat or padded) in trajectories numbered below
+    ``count``, the first ``count`` to start; None if it holds none; the batch as given if it
+    carries no trajectory ids. ``first_ids``: the first batch of a new collector holds a
+    trajectory numbered below it (its rows' first episodes end before any other)."""
+    keys = batch.keys(include_nested=True)
+    if ("collector", "traj_ids") not in keys:
+        return batch
+    if ("collector", "mask") in keys and batch.batch_dims >= 2:  # whole trajectories, padded
+        rows = batch.reshape(-1, batch.shape[-1])
+        real = rows["collector", "mask"].bool()
+        ids = torch.where(real, rows["collector", "traj_ids"], -1).max(-1).values
+        kept, lowest = rows[ids < count], ids[ids >= 0].min()
+    else:  # steps: every trajectory running in the batch, cut or whole
+        flat = batch.reshape(-1)
+        ids = flat["collector", "traj_ids"]
+        kept, lowest = flat[ids < count], ids.min()
+    if first_batch and int(lowest) >= first_ids:
+        raise ValueError(
+            f"the collector's first trajectories are numbered from {int(lowest)}, not 0: it "
+            "was used before (make a new Collector for each purchase: its trajectories are "
+            "numbered as they start, and the first to start are kept)"
+        )
+    return kept if kept.shape[0] else None
 
 
 def _check_step_cap(buffer: EpisodeBuffer, num_steps: int, batch: int) -> None:
