@@ -149,6 +149,8 @@ def run_arguments(
     parser.add_argument("--swing", choices=("tensor", "mujoco"), default="tensor")
     parser.add_argument("--out", default=out)
     args = parser.parse_args()
+    if command and args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
     torch.set_num_threads(args.threads)
     return args
 
