@@ -15,7 +15,7 @@ import torch
 
 from envs.batting import ACTION_TORQUES, MAX_STEPS, BattingEnv, BattingSimulator, PhysicsHook
 from envs.batting.arm_model import ArmModel
-from envs.batting.swing import TensorSwing, arm_acceleration, state_offsets
+from envs.batting.swing import TensorSwing, arm_acceleration, rk4_swing, state_offsets
 
 INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 STATE_TOL = (1e-5, 1e-3)  # (rad, rad/s): worst difference of an observed state allowed
@@ -228,6 +228,21 @@ def test_a_rows_swing_does_not_depend_on_its_batch():
     order = np.random.default_rng(6).permutation(37)
     shuffled, _ = swing.rollout(start[order], ctrl[order], 10)
     np.testing.assert_array_equal(shuffled, batch[order])
+
+
+def test_the_swing_dynamics_stay_on_the_device_they_are_given():
+    """Without a GPU: on PyTorch's meta device (shapes, no numbers) every tensor of the model
+    and of the RK4 swing must be made there, or an operation mixing it with a CPU tensor
+    raises; a state on another device than the model's is refused the same way."""
+    model, _ = coarse_model()
+    arm = ArmModel.from_mujoco(model, torch.device("meta"))
+    q = torch.zeros(2, 8, dtype=torch.float64, device="meta")
+    force = arm.actuation @ torch.ones(2, 8, dtype=torch.float64, device="meta")
+    angles, speeds, accelerations = rk4_swing(arm, q, torch.zeros_like(q), force, 10)
+    assert (angles.shape, speeds.shape, accelerations.shape) == ((11, 2, 8),) * 2 + ((10, 2, 8),)
+    assert {x.device.type for x in (angles, speeds, accelerations)} == {"meta"}
+    with pytest.raises(RuntimeError, match="device"):
+        rk4_swing(arm, torch.zeros(2, 8, dtype=torch.float64), torch.zeros_like(q), force, 10)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
